@@ -1,0 +1,209 @@
+//! Residual-force estimators (Steps III–IV) and the connection law they feed (Step V).
+//!
+//! Every estimator implements [`ResidualEstimator`]: given one aligned sample (known
+//! excitation `p_i`, measured station outputs `y_i`) it returns the residual force
+//! `R_i = f_i − f̂_i` at each connection, the total connection force `f_i` and the
+//! connection state `(δ, δ̇, δ̈)_i` the model reaches with it. MCAP replay, live iceoryx2 data
+//! and the synthetic generator all drive this same `step`.
+//!
+//! - [`paper::PaperEstimator`]: the 1989 one-step weighted least squares (the reference).
+//! - [`kalman::KalmanEstimator`]: joint input–state estimation with a steady-state Kalman
+//!   gain and a fixed-lag smoother (the default; see its module docs for why).
+
+#![allow(non_snake_case)]
+
+
+pub mod paper;
+pub mod refit;
+
+use nalgebra::{DMatrix, DVector};
+
+use crate::setup::{Basis, Quantity, Setup};
+
+#[derive(Debug, thiserror::Error)]
+pub enum EstimateError {
+    #[error(
+        "the stations cannot determine the residual forces: rank(S) = {rank} but {needed} connection DOFs need {needed} independent measured quantities ({stations} channels; condition number {condition:.3e})"
+    )]
+    RankDeficientSensitivity {
+        rank: usize,
+        needed: usize,
+        stations: usize,
+        condition: f64,
+    },
+    #[error("the estimate diverged at sample {sample}: the model state is no longer finite")]
+    Diverged { sample: u64 },
+    #[error(transparent)]
+    Integrate(#[from] crate::integrate::IntegrateError),
+}
+
+/// One sample's estimate. Vectors have one entry per connection.
+#[derive(Debug, Clone)]
+pub struct StepOutput {
+    pub sample: u64,
+    /// `R = f − f̂`, N.
+    pub residual: DVector<f64>,
+    /// Total connection force `f`, N, positive resisting.
+    pub force: DVector<f64>,
+    /// Connection deformation δ (m), rate δ̇ (m/s), acceleration δ̈ (m/s²).
+    pub delta: DVector<f64>,
+    pub delta_v: DVector<f64>,
+    pub delta_a: DVector<f64>,
+}
+
+impl StepOutput {
+    pub fn new(q: usize) -> Self {
+        Self {
+            sample: 0,
+            residual: DVector::zeros(q),
+            force: DVector::zeros(q),
+            delta: DVector::zeros(q),
+            delta_v: DVector::zeros(q),
+            delta_a: DVector::zeros(q),
+        }
+    }
+}
+
+/// Figures an estimator reports about itself, per pass.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct EstimatorDiagnostics {
+    pub estimator: String,
+    /// Rank of the weighted sensitivity `W^½ S`.
+    pub sensitivity_rank: usize,
+    /// 2-norm condition number of `W^½ S`.
+    pub sensitivity_condition: f64,
+    /// Largest singular value of `S`: output change per newton of residual force.
+    pub sensitivity_gain: f64,
+    /// Spectral radius of the step-to-step error recursion (≥ 1: errors do not decay).
+    pub error_spectral_radius: Option<f64>,
+    /// Free-form tuning facts (Kalman noise levels, lag, …).
+    pub tuning: Vec<(String, f64)>,
+    pub warnings: Vec<String>,
+}
+
+/// A residual-force estimator: Steps III and IV for one sample at a time.
+pub trait ResidualEstimator: Send {
+    fn name(&self) -> &'static str;
+    /// Start a pass at rest with the first sample's excitation.
+    fn start(&mut self, sample: u64, excitation: &[f64]);
+    /// Consume sample `sample`. Returns `true` when `out` holds a finished estimate (its
+    /// `out.sample` may lag behind `sample` for smoothing estimators).
+    fn step(
+        &mut self,
+        sample: u64,
+        excitation: &[f64],
+        measured: &[f64],
+        out: &mut StepOutput,
+    ) -> Result<bool, EstimateError>;
+    /// After the last sample: emit the estimates still held back, one per call.
+    fn drain(&mut self, out: &mut StepOutput) -> bool;
+    fn diagnostics(&self) -> &EstimatorDiagnostics;
+}
+
+/// The connection law `f = Σ pⱼ vⱼ(δ, δ̇, δ̈)` with the current parameter estimate, split
+/// into the linear terms (carried by the model's K, C, M) and the rest (applied as an
+/// explicit force from the previous sample's state).
+#[derive(Debug, Clone)]
+pub struct ConnectionLaw {
+    /// Per connection: its basis functions and the offset of its first parameter.
+    pub blocks: Vec<(Vec<Basis>, usize)>,
+    pub params: Vec<f64>,
+    pub labels: Vec<String>,
+}
+
+impl ConnectionLaw {
+    pub fn new(setup: &Setup, params: &[f64]) -> Self {
+        let mut blocks = Vec::new();
+        let mut off = 0;
+        for c in &setup.connections {
+            blocks.push((c.basis.clone(), off));
+            off += c.basis.len();
+        }
+        Self {
+            blocks,
+            params: params.to_vec(),
+            labels: setup.param_keys(),
+        }
+    }
+
+    pub fn q(&self) -> usize {
+        self.blocks.len()
+    }
+
+    /// Force of the non-linear terms (everything not in K, C, M).
+    pub fn explicit_force(&self, d: &DVector<f64>, dv: &DVector<f64>, da: &DVector<f64>, out: &mut DVector<f64>) {
+        for (c, (basis, off)) in self.blocks.iter().enumerate() {
+            out[c] = basis
+                .iter()
+                .enumerate()
+                .filter(|(_, b)| !b.is_linear())
+                .map(|(j, b)| self.params[off + j] * b.eval(d[c], dv[c], da[c]))
+                .sum();
+        }
+    }
+
+    /// Force of the linear terms (the part the model's matrices carry).
+    pub fn linear_force(&self, d: &DVector<f64>, dv: &DVector<f64>, da: &DVector<f64>, out: &mut DVector<f64>) {
+        for (c, (basis, off)) in self.blocks.iter().enumerate() {
+            out[c] = basis
+                .iter()
+                .enumerate()
+                .filter(|(_, b)| b.is_linear())
+                .map(|(j, b)| self.params[off + j] * b.eval(d[c], dv[c], da[c]))
+                .sum();
+        }
+    }
+}
+
+/// Station output map: `y = H x` with `x = (u; v; a)`, plus the channels' selection.
+#[derive(Debug, Clone)]
+pub struct Stations {
+    pub channels: Vec<(usize, Quantity)>,
+}
+
+impl Stations {
+    pub fn from_model(model: &crate::model::Model) -> Self {
+        Self {
+            channels: model.stations.iter().map(|s| (s.dof, s.quantity)).collect(),
+        }
+    }
+
+    pub fn m(&self) -> usize {
+        self.channels.len()
+    }
+
+    /// Index of a channel in the stacked state (u; v; a).
+    pub fn state_index(&self, k: usize, n: usize) -> usize {
+        let (dof, q) = self.channels[k];
+        match q {
+            Quantity::Displacement => dof,
+            Quantity::Velocity => n + dof,
+            Quantity::Acceleration => 2 * n + dof,
+        }
+    }
+
+    /// Rows of a stacked (3n × k) matrix picked by the channels: H·X.
+    pub fn pick_rows(&self, x: &DMatrix<f64>, n: usize) -> DMatrix<f64> {
+        DMatrix::from_fn(self.m(), x.ncols(), |i, j| x[(self.state_index(i, n), j)])
+    }
+}
+
+/// Rank and 2-norm condition number of a matrix (tolerance relative to the largest singular
+/// value).
+pub fn rank_and_condition(a: &DMatrix<f64>) -> (usize, f64, f64) {
+    let sv = a.clone().svd(false, false).singular_values;
+    let smax = sv.max();
+    let smin = sv.min();
+    let tol = smax * (a.nrows().max(a.ncols()) as f64) * f64::EPSILON * 16.0;
+    let rank = sv.iter().filter(|&&s| s > tol).count();
+    (rank, if smin > 0.0 { smax / smin } else { f64::INFINITY }, smax)
+}
+
+/// Spectral radius of a square matrix.
+pub fn spectral_radius(a: &DMatrix<f64>) -> f64 {
+    a.clone()
+        .complex_eigenvalues()
+        .iter()
+        .map(|z| z.norm())
+        .fold(0.0, f64::max)
+}

@@ -1,0 +1,5 @@
+//! jointid — identify structural connection properties from vibration test data.
+pub mod estimate;
+pub mod integrate;
+pub mod model;
+pub mod setup;

@@ -1,0 +1,947 @@
+//! Setup file: the TOML schema (serde, unknown keys rejected) and its validation into a
+//! [`Setup`] that every later stage trusts ("parse, don't validate").
+//!
+//! Units are SI throughout: metres, seconds, newtons, kilograms. A node reference is the
+//! integer id of a node; a DOF reference is `{ node = 6, dir = "w" }` where `dir` is `w`
+//! (transverse translation) or `rz` (in-plane rotation).
+//!
+//! Decisions written down here:
+//! - Beams are planar Euler–Bernoulli bending elements along a line (transverse `w` and
+//!   rotation `rz` per node); axial motion is not modelled.
+//! - A beam is given by its end nodes and a number of elements; its interior nodes get the
+//!   ids listed in `interior_ids` so that sensors and connections can name them.
+//! - With lumped mass the rotations carry no inertia and are removed by static
+//!   condensation (exact for the massless DOFs). Excitation, sensors and connections must
+//!   therefore sit on translations when the mass is lumped; the validation says so.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+/// Errors while reading or validating a setup. Each names the file and the offending key.
+#[derive(Debug, thiserror::Error)]
+pub enum SetupError {
+    #[error("cannot read setup {path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("setup {origin}: {message}")]
+    Parse { origin: String, message: String },
+    #[error("setup {origin}: {key}: {message}")]
+    Invalid {
+        origin: String,
+        key: String,
+        message: String,
+    },
+}
+
+// ---------------------------------------------------------------------------------------
+// Raw schema (what the TOML says)
+// ---------------------------------------------------------------------------------------
+
+/// The setup file as written. See `recordings/two-beam-friction.toml` for an example.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SetupFile {
+    /// Free text shown in reports.
+    #[serde(default)]
+    pub title: String,
+    pub model: ModelSpec,
+    #[serde(default)]
+    pub excitation: Vec<ExcitationSpec>,
+    #[serde(default)]
+    pub sensors: Vec<SensorSpec>,
+    #[serde(default)]
+    pub connections: Vec<ConnectionSpec>,
+    pub integrator: IntegratorSpec,
+    #[serde(default)]
+    pub estimator: EstimatorSpec,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModelSpec {
+    pub nodes: Vec<NodeSpec>,
+    #[serde(default)]
+    pub beams: Vec<BeamSpec>,
+    #[serde(default)]
+    pub masses: Vec<MassSpec>,
+    #[serde(default)]
+    pub springs: Vec<LinkSpec>,
+    #[serde(default)]
+    pub dashpots: Vec<LinkSpec>,
+    /// Nodes where the beams meeting there have separate rotations (a pin / revolute joint).
+    #[serde(default)]
+    pub hinges: Vec<u32>,
+    #[serde(default)]
+    pub supports: Vec<SupportSpec>,
+    #[serde(default)]
+    pub rayleigh: Option<RayleighSpec>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NodeSpec {
+    pub id: u32,
+    /// Position along the beam line, m.
+    pub x: f64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum MassKind {
+    /// Half of each element's mass at each end node, no rotary inertia.
+    #[default]
+    Lumped,
+    /// Consistent (cubic Hermite) mass matrix.
+    Consistent,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BeamSpec {
+    #[serde(default)]
+    pub name: String,
+    pub from: u32,
+    pub to: u32,
+    /// Number of elements the beam is split into.
+    #[serde(default = "one")]
+    pub elements: usize,
+    /// Ids given to the `elements − 1` interior nodes, from `from` towards `to`.
+    #[serde(default)]
+    pub interior_ids: Vec<u32>,
+    /// Bending stiffness EI, N·m².
+    pub ei: f64,
+    /// Mass per unit length, kg/m.
+    pub mass_per_length: f64,
+    #[serde(default)]
+    pub mass: MassKind,
+}
+
+fn one() -> usize {
+    1
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MassSpec {
+    pub node: u32,
+    /// Translational mass, kg.
+    #[serde(default)]
+    pub mass: f64,
+    /// Rotary inertia, kg·m².
+    #[serde(default)]
+    pub inertia: f64,
+}
+
+/// A spring (value `k`, N/m) or dashpot (value `c`, N·s/m): grounded on `dof`, or between
+/// the two DOFs of `between` (acting on `u_a − u_b`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LinkSpec {
+    #[serde(default)]
+    pub dof: Option<DofRef>,
+    #[serde(default)]
+    pub between: Option<[DofRef; 2]>,
+    #[serde(alias = "k", alias = "c")]
+    pub value: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SupportSpec {
+    pub node: u32,
+    /// Directions fixed at the node: any of `w`, `rz`.
+    pub fix: Vec<Dir>,
+}
+
+/// Rayleigh damping `C = alpha·M + beta·K` of the components.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RayleighSpec {
+    #[serde(default)]
+    pub alpha: f64,
+    #[serde(default)]
+    pub beta: f64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Dir {
+    /// Transverse translation, m.
+    W,
+    /// In-plane rotation, rad.
+    Rz,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DofRef {
+    pub node: u32,
+    pub dir: Dir,
+}
+
+impl std::fmt::Display for DofRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let d = match self.dir {
+            Dir::W => "w",
+            Dir::Rz => "rz",
+        };
+        write!(f, "node {} {}", self.node, d)
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExcitationSpec {
+    pub name: String,
+    pub dof: DofRef,
+    #[serde(default = "newton")]
+    pub unit: String,
+}
+
+fn newton() -> String {
+    "N".into()
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Quantity {
+    Displacement,
+    Velocity,
+    Acceleration,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SensorSpec {
+    pub name: String,
+    pub dof: DofRef,
+    pub quantity: Quantity,
+    #[serde(default)]
+    pub unit: Option<String>,
+    /// Standard deviation of the measurement noise in the channel's unit. When absent the
+    /// estimator derives it from the data (see `estimate`).
+    #[serde(default)]
+    pub noise_std: Option<f64>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ConnectionSpec {
+    pub name: String,
+    /// Grounded connection on this DOF…
+    #[serde(default)]
+    pub dof: Option<DofRef>,
+    /// …or a connection between two DOFs, deformation `u_a − u_b`.
+    #[serde(default)]
+    pub between: Option<[DofRef; 2]>,
+    /// Basis functions, e.g. `["sign(u)", "u", "const(100)", "v"]`.
+    pub basis: Vec<String>,
+    /// Initial guesses of the parameters (default zero).
+    #[serde(default)]
+    pub initial: Vec<f64>,
+    /// True parameters, used by `jointid simulate` to generate data.
+    #[serde(default)]
+    pub truth: Vec<f64>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct IntegratorSpec {
+    /// Sample interval of the data, s.
+    pub dt_s: f64,
+    #[serde(default = "half")]
+    pub gamma: f64,
+    #[serde(default = "quarter")]
+    pub beta: f64,
+    /// Newmark steps the identification model takes per sample.
+    #[serde(default = "one")]
+    pub substeps: usize,
+}
+
+fn half() -> f64 {
+    0.5
+}
+fn quarter() -> f64 {
+    0.25
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum EstimatorKind {
+    /// The 1989 one-step least-squares estimator (the reference).
+    Paper,
+    /// Steady-state Kalman joint input–state estimator with smoothing (the default).
+    #[default]
+    Kalman,
+}
+
+impl std::str::FromStr for EstimatorKind {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "paper" => Ok(Self::Paper),
+            "kalman" => Ok(Self::Kalman),
+            other => Err(format!(
+                "unknown estimator `{other}` (expected `paper` or `kalman`)"
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for EstimatorKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Paper => "paper",
+            Self::Kalman => "kalman",
+        })
+    }
+}
+
+/// Channel weights `W` in Step III.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Weighting {
+    /// `W = diag(1/σ²)`: balances channels of different units (default).
+    #[default]
+    InverseVariance,
+    /// `W = I`, as the paper's sample problem.
+    Unit,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EstimatorSpec {
+    #[serde(default)]
+    pub kind: EstimatorKind,
+    #[serde(default)]
+    pub weighting: Weighting,
+    /// Maximum passes over the data (Step VI).
+    #[serde(default = "default_passes")]
+    pub passes: usize,
+    /// Stop when every parameter moved less than this many standard errors in a pass.
+    #[serde(default = "default_tol_se")]
+    pub tolerance_std_errors: f64,
+    /// …or less than this relative change (whichever comes first).
+    #[serde(default = "default_tol_rel")]
+    pub tolerance_relative: f64,
+    /// Largest acceptable condition number of the parameter fit.
+    #[serde(default = "default_max_cond")]
+    pub max_condition: f64,
+    /// Kalman: random-walk standard deviation of the residual force per sample, N. When
+    /// absent it is derived from the data (see `estimate::kalman`).
+    #[serde(default)]
+    pub force_walk_std: Option<f64>,
+}
+
+fn default_passes() -> usize {
+    10
+}
+fn default_tol_se() -> f64 {
+    0.01
+}
+fn default_tol_rel() -> f64 {
+    1e-9
+}
+fn default_max_cond() -> f64 {
+    1e12
+}
+
+impl Default for EstimatorSpec {
+    fn default() -> Self {
+        Self {
+            kind: EstimatorKind::default(),
+            weighting: Weighting::default(),
+            passes: default_passes(),
+            tolerance_std_errors: default_tol_se(),
+            tolerance_relative: default_tol_rel(),
+            max_condition: default_max_cond(),
+            force_walk_std: None,
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// Validated setup
+// ---------------------------------------------------------------------------------------
+
+/// A connection basis function `v(δ, δ̇, δ̈)`; `f = Σ pⱼ·vⱼ`, positive when it resists.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Basis {
+    /// `δ` — linear spring (parameter: stiffness, N/m).
+    U,
+    /// `δ³` — cubic spring (N/m³).
+    U3,
+    /// `δ̇` — viscous damper (N·s/m).
+    V,
+    /// `sign(δ̇)` — Coulomb friction (N); set-valued at δ̇ = 0 (sticking).
+    SignV,
+    /// `sign(δ)` — the paper's friction term (N); set-valued at δ = 0.
+    SignU,
+    /// `c` — constant force scaled by `c` (preload / offset).
+    Const(f64),
+    /// `δ̈` — added mass (kg).
+    A,
+    /// Dead band of half-width `g` (m): `δ − g` above `g`, `δ + g` below `−g`, else 0.
+    Gap(f64),
+}
+
+impl Basis {
+    /// Parse `u`, `u^3`, `v`, `sign(v)`, `sign(u)`, `const(100)`, `a`, `gap(0.001)`.
+    pub fn parse(s: &str) -> Result<Self, String> {
+        let t: String = s.chars().filter(|c| !c.is_whitespace()).collect();
+        let arg = |prefix: &str| -> Option<Result<f64, String>> {
+            t.strip_prefix(prefix).and_then(|r| r.strip_suffix(')')).map(|x| {
+                x.parse::<f64>()
+                    .map_err(|_| format!("`{s}`: `{x}` is not a number"))
+            })
+        };
+        Ok(match t.as_str() {
+            "u" => Self::U,
+            "u^3" | "u3" => Self::U3,
+            "v" => Self::V,
+            "sign(v)" => Self::SignV,
+            "sign(u)" => Self::SignU,
+            "a" => Self::A,
+            _ => {
+                if let Some(c) = arg("const(") {
+                    let c = c?;
+                    if !c.is_finite() || c == 0.0 {
+                        return Err(format!("`{s}`: the scale must be finite and non-zero"));
+                    }
+                    Self::Const(c)
+                } else if let Some(g) = arg("gap(") {
+                    let g = g?;
+                    if !(g.is_finite() && g > 0.0) {
+                        return Err(format!("`{s}`: the clearance must be positive"));
+                    }
+                    Self::Gap(g)
+                } else {
+                    return Err(format!(
+                        "unknown basis function `{s}` (expected u, u^3, v, sign(v), sign(u), const(c), a, gap(g))"
+                    ));
+                }
+            }
+        })
+    }
+
+    /// Value of the basis function at a connection state. `sign(0)` is 0 here: the
+    /// set-valued cases are handled by the simulator and excluded from the fit.
+    #[inline]
+    pub fn eval(&self, d: f64, dv: f64, da: f64) -> f64 {
+        match *self {
+            Self::U => d,
+            Self::U3 => d * d * d,
+            Self::V => dv,
+            Self::SignV => sign0(dv),
+            Self::SignU => sign0(d),
+            Self::Const(c) => c,
+            Self::A => da,
+            Self::Gap(g) => {
+                if d > g {
+                    d - g
+                } else if d < -g {
+                    d + g
+                } else {
+                    0.0
+                }
+            }
+        }
+    }
+
+    /// Terms that are linear in the state go into the model's K, C or M (Step VI).
+    pub fn is_linear(&self) -> bool {
+        matches!(self, Self::U | Self::V | Self::A)
+    }
+
+    /// Short label used in tables and metadata keys.
+    pub fn label(&self) -> String {
+        match *self {
+            Self::U => "u".into(),
+            Self::U3 => "u^3".into(),
+            Self::V => "v".into(),
+            Self::SignV => "sign(v)".into(),
+            Self::SignU => "sign(u)".into(),
+            Self::Const(c) => format!("const({c})"),
+            Self::A => "a".into(),
+            Self::Gap(g) => format!("gap({g})"),
+        }
+    }
+
+    /// Unit of the parameter multiplying this basis.
+    pub fn unit(&self) -> &'static str {
+        match self {
+            Self::U | Self::Gap(_) => "N/m",
+            Self::U3 => "N/m^3",
+            Self::V => "N s/m",
+            Self::SignV | Self::SignU | Self::Const(_) => "N",
+            Self::A => "kg",
+        }
+    }
+}
+
+#[inline]
+fn sign0(x: f64) -> f64 {
+    if x > 0.0 {
+        1.0
+    } else if x < 0.0 {
+        -1.0
+    } else {
+        0.0
+    }
+}
+
+/// A connection DOF: grounded (`b = None`) or between two DOFs.
+#[derive(Debug, Clone)]
+pub struct Connection {
+    pub name: String,
+    pub a: DofRef,
+    pub b: Option<DofRef>,
+    pub basis: Vec<Basis>,
+    pub initial: Vec<f64>,
+    pub truth: Option<Vec<f64>>,
+}
+
+#[derive(Debug, Clone)]
+pub struct Sensor {
+    pub name: String,
+    pub dof: DofRef,
+    pub quantity: Quantity,
+    pub unit: String,
+    pub noise_std: Option<f64>,
+}
+
+#[derive(Debug, Clone)]
+pub struct Excitation {
+    pub name: String,
+    pub dof: DofRef,
+    pub unit: String,
+}
+
+/// Newmark-β parameters, checked unconditionally stable (`γ ≥ ½`, `β ≥ (γ+½)²/4`... we
+/// require the usual `2β ≥ γ ≥ ½`).
+#[derive(Debug, Clone, Copy)]
+pub struct Newmark {
+    pub gamma: f64,
+    pub beta: f64,
+}
+
+/// The validated setup.
+#[derive(Debug, Clone)]
+pub struct Setup {
+    /// Where it came from (file path or "recording attachment"), for messages.
+    pub origin: String,
+    /// The exact TOML text, attached to recordings so a replay needs nothing else.
+    pub toml_text: String,
+    pub title: String,
+    pub model: ModelSpec,
+    pub excitation: Vec<Excitation>,
+    pub sensors: Vec<Sensor>,
+    pub connections: Vec<Connection>,
+    /// Sample interval, s.
+    pub dt_s: f64,
+    pub newmark: Newmark,
+    pub substeps: usize,
+    pub estimator: EstimatorSpec,
+}
+
+impl Setup {
+    pub fn from_file(path: &Path) -> Result<Self, SetupError> {
+        let text = std::fs::read_to_string(path).map_err(|source| SetupError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_toml(&text, &path.display().to_string())
+    }
+
+    pub fn from_toml(text: &str, origin: &str) -> Result<Self, SetupError> {
+        let raw: SetupFile = toml::from_str(text).map_err(|e| SetupError::Parse {
+            origin: origin.to_string(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        validate(raw, text, origin)
+    }
+
+    /// Total number of connection parameters.
+    pub fn n_params(&self) -> usize {
+        self.connections.iter().map(|c| c.basis.len()).sum()
+    }
+
+    /// `connection.basis` labels, in parameter order.
+    pub fn param_keys(&self) -> Vec<String> {
+        self.connections
+            .iter()
+            .flat_map(|c| c.basis.iter().map(move |b| format!("{}.{}", c.name, b.label())))
+            .collect()
+    }
+
+    pub fn initial_params(&self) -> Vec<f64> {
+        self.connections
+            .iter()
+            .flat_map(|c| c.initial.iter().copied())
+            .collect()
+    }
+
+    pub fn truth_params(&self) -> Option<Vec<f64>> {
+        let mut out = Vec::new();
+        for c in &self.connections {
+            out.extend_from_slice(c.truth.as_ref()?);
+        }
+        Some(out)
+    }
+}
+
+fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupError> {
+    let bad = |key: String, message: String| SetupError::Invalid {
+        origin: origin.to_string(),
+        key,
+        message,
+    };
+    let m = &raw.model;
+    // Nodes: declared ones and interior ones generated by beams.
+    let mut node_ids: BTreeSet<u32> = BTreeSet::new();
+    for (i, n) in m.nodes.iter().enumerate() {
+        if !n.x.is_finite() {
+            return Err(bad(format!("model.nodes[{i}].x"), "must be finite".into()));
+        }
+        if !node_ids.insert(n.id) {
+            return Err(bad(
+                format!("model.nodes[{i}].id"),
+                format!("node {} declared twice", n.id),
+            ));
+        }
+    }
+    let declared = node_ids.clone();
+    for (i, b) in m.beams.iter().enumerate() {
+        let key = |f: &str| format!("model.beams[{i}].{f}");
+        for (f, id) in [("from", b.from), ("to", b.to)] {
+            if !declared.contains(&id) {
+                return Err(bad(key(f), format!("node {id} is not declared in model.nodes")));
+            }
+        }
+        if b.from == b.to {
+            return Err(bad(key("to"), "a beam needs two different end nodes".into()));
+        }
+        if b.elements == 0 {
+            return Err(bad(key("elements"), "must be at least 1".into()));
+        }
+        if b.interior_ids.len() != b.elements - 1 {
+            return Err(bad(
+                key("interior_ids"),
+                format!(
+                    "{} elements need {} interior node ids, got {}",
+                    b.elements,
+                    b.elements - 1,
+                    b.interior_ids.len()
+                ),
+            ));
+        }
+        for id in &b.interior_ids {
+            if !node_ids.insert(*id) {
+                return Err(bad(key("interior_ids"), format!("node id {id} is already used")));
+            }
+        }
+        if !(b.ei.is_finite() && b.ei > 0.0) {
+            return Err(bad(key("ei"), format!("must be positive, got {}", b.ei)));
+        }
+        if !(b.mass_per_length.is_finite() && b.mass_per_length >= 0.0) {
+            return Err(bad(
+                key("mass_per_length"),
+                format!("must be ≥ 0, got {}", b.mass_per_length),
+            ));
+        }
+    }
+    let xs: BTreeMap<u32, f64> = m.nodes.iter().map(|n| (n.id, n.x)).collect();
+    for (i, b) in m.beams.iter().enumerate() {
+        if xs[&b.from] == xs[&b.to] {
+            return Err(bad(
+                format!("model.beams[{i}]"),
+                "end nodes are at the same position (zero length)".into(),
+            ));
+        }
+    }
+    let check_node = |key: String, id: u32| -> Result<(), SetupError> {
+        if node_ids.contains(&id) {
+            Ok(())
+        } else {
+            Err(bad(key, format!("node {id} does not exist")))
+        }
+    };
+    for (i, ms) in m.masses.iter().enumerate() {
+        check_node(format!("model.masses[{i}].node"), ms.node)?;
+        if !(ms.mass >= 0.0 && ms.inertia >= 0.0 && ms.mass.is_finite() && ms.inertia.is_finite())
+        {
+            return Err(bad(format!("model.masses[{i}]"), "mass and inertia must be ≥ 0".into()));
+        }
+    }
+    for (what, links) in [("springs", &m.springs), ("dashpots", &m.dashpots)] {
+        for (i, l) in links.iter().enumerate() {
+            let key = format!("model.{what}[{i}]");
+            match (&l.dof, &l.between) {
+                (Some(d), None) => check_node(key.clone(), d.node)?,
+                (None, Some([a, b])) => {
+                    check_node(key.clone(), a.node)?;
+                    check_node(key.clone(), b.node)?;
+                }
+                _ => return Err(bad(key, "give exactly one of `dof` or `between`".into())),
+            }
+            if !(l.value.is_finite() && l.value >= 0.0) {
+                return Err(bad(format!("{key}.value"), format!("must be ≥ 0, got {}", l.value)));
+            }
+        }
+    }
+    for (i, h) in m.hinges.iter().enumerate() {
+        check_node(format!("model.hinges[{i}]"), *h)?;
+    }
+    for (i, s) in m.supports.iter().enumerate() {
+        check_node(format!("model.supports[{i}].node"), s.node)?;
+    }
+    if let Some(r) = &m.rayleigh
+        && !(r.alpha >= 0.0 && r.beta >= 0.0 && r.alpha.is_finite() && r.beta.is_finite())
+    {
+        return Err(bad("model.rayleigh".into(), "alpha and beta must be ≥ 0".into()));
+    }
+
+    let hinge_set: BTreeSet<u32> = m.hinges.iter().copied().collect();
+    let check_dof = |key: String, d: &DofRef| -> Result<(), SetupError> {
+        check_node(key.clone(), d.node)?;
+        if d.dir == Dir::Rz && hinge_set.contains(&d.node) {
+            return Err(bad(
+                key,
+                format!(
+                    "{d}: a hinge node has one rotation per beam; refer to its translation instead"
+                ),
+            ));
+        }
+        Ok(())
+    };
+
+    let mut excitation = Vec::new();
+    let mut names = BTreeSet::new();
+    for (i, e) in raw.excitation.iter().enumerate() {
+        check_dof(format!("excitation[{i}].dof"), &e.dof)?;
+        if !names.insert(e.name.clone()) {
+            return Err(bad(format!("excitation[{i}].name"), format!("`{}` used twice", e.name)));
+        }
+        excitation.push(Excitation {
+            name: e.name.clone(),
+            dof: e.dof,
+            unit: e.unit.clone(),
+        });
+    }
+    if excitation.is_empty() {
+        return Err(bad("excitation".into(), "at least one excitation channel is needed".into()));
+    }
+    let mut sensors = Vec::new();
+    for (i, s) in raw.sensors.iter().enumerate() {
+        check_dof(format!("sensors[{i}].dof"), &s.dof)?;
+        if !names.insert(s.name.clone()) {
+            return Err(bad(format!("sensors[{i}].name"), format!("`{}` used twice", s.name)));
+        }
+        if let Some(sd) = s.noise_std
+            && !(sd.is_finite() && sd > 0.0)
+        {
+            return Err(bad(format!("sensors[{i}].noise_std"), format!("must be > 0, got {sd}")));
+        }
+        let unit = s.unit.clone().unwrap_or_else(|| {
+            match s.quantity {
+                Quantity::Displacement => "m",
+                Quantity::Velocity => "m/s",
+                Quantity::Acceleration => "m/s^2",
+            }
+            .to_string()
+        });
+        sensors.push(Sensor {
+            name: s.name.clone(),
+            dof: s.dof,
+            quantity: s.quantity,
+            unit,
+            noise_std: s.noise_std,
+        });
+    }
+    if sensors.is_empty() {
+        return Err(bad("sensors".into(), "at least one sensor channel is needed".into()));
+    }
+    let mut connections = Vec::new();
+    for (i, c) in raw.connections.iter().enumerate() {
+        let key = |f: &str| format!("connections[{i}].{f}");
+        let (a, b) = match (&c.dof, &c.between) {
+            (Some(d), None) => {
+                check_dof(key("dof"), d)?;
+                (*d, None)
+            }
+            (None, Some([a, b])) => {
+                check_dof(key("between"), a)?;
+                check_dof(key("between"), b)?;
+                if a == b {
+                    return Err(bad(key("between"), "the two DOFs must differ".into()));
+                }
+                (*a, Some(*b))
+            }
+            _ => {
+                return Err(bad(
+                    format!("connections[{i}]"),
+                    "give exactly one of `dof` or `between`".into(),
+                ));
+            }
+        };
+        if c.basis.is_empty() {
+            return Err(bad(key("basis"), "at least one basis function is needed".into()));
+        }
+        let mut basis = Vec::new();
+        for (j, s) in c.basis.iter().enumerate() {
+            basis.push(Basis::parse(s).map_err(|e| bad(format!("connections[{i}].basis[{j}]"), e))?);
+        }
+        let nb = basis.len();
+        let initial = if c.initial.is_empty() {
+            vec![0.0; nb]
+        } else {
+            c.initial.clone()
+        };
+        if initial.len() != nb {
+            return Err(bad(
+                key("initial"),
+                format!("{} basis functions but {} initial values", nb, initial.len()),
+            ));
+        }
+        let truth = if c.truth.is_empty() {
+            None
+        } else if c.truth.len() != nb {
+            return Err(bad(
+                key("truth"),
+                format!("{} basis functions but {} true values", nb, c.truth.len()),
+            ));
+        } else {
+            Some(c.truth.clone())
+        };
+        for (j, v) in initial.iter().chain(truth.iter().flatten()).enumerate() {
+            if !v.is_finite() {
+                return Err(bad(format!("connections[{i}]"), format!("value {j} is not finite")));
+            }
+        }
+        if !names.insert(c.name.clone()) {
+            return Err(bad(key("name"), format!("`{}` used twice", c.name)));
+        }
+        connections.push(Connection {
+            name: c.name.clone(),
+            a,
+            b,
+            basis,
+            initial,
+            truth,
+        });
+    }
+    if connections.is_empty() {
+        return Err(bad("connections".into(), "at least one connection is needed".into()));
+    }
+    let it = &raw.integrator;
+    if !(it.dt_s.is_finite() && it.dt_s > 0.0) {
+        return Err(bad("integrator.dt_s".into(), format!("must be > 0, got {}", it.dt_s)));
+    }
+    if !(it.gamma >= 0.5 && 2.0 * it.beta >= it.gamma && it.beta.is_finite() && it.gamma.is_finite())
+    {
+        return Err(bad(
+            "integrator".into(),
+            format!(
+                "Newmark γ = {}, β = {} is not unconditionally stable (need 2β ≥ γ ≥ ½)",
+                it.gamma, it.beta
+            ),
+        ));
+    }
+    if it.substeps == 0 || it.substeps > 4096 {
+        return Err(bad(
+            "integrator.substeps".into(),
+            format!("must be in 1..=4096, got {}", it.substeps),
+        ));
+    }
+    let est = &raw.estimator;
+    if est.passes == 0 {
+        return Err(bad("estimator.passes".into(), "must be at least 1".into()));
+    }
+    if let Some(q) = est.force_walk_std
+        && !(q.is_finite() && q > 0.0)
+    {
+        return Err(bad("estimator.force_walk_std".into(), format!("must be > 0, got {q}")));
+    }
+    Ok(Setup {
+        origin: origin.to_string(),
+        toml_text: text.to_string(),
+        title: raw.title.clone(),
+        model: raw.model.clone(),
+        excitation,
+        sensors,
+        connections,
+        dt_s: it.dt_s,
+        newmark: Newmark {
+            gamma: it.gamma,
+            beta: it.beta,
+        },
+        substeps: it.substeps,
+        estimator: raw.estimator.clone(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    pub(crate) const TINY: &str = r#"
+[model]
+nodes = [{ id = 1, x = 0.0 }]
+masses = [{ node = 1, mass = 2.0 }]
+springs = [{ dof = { node = 1, dir = "w" }, k = 100.0 }]
+[[excitation]]
+name = "f"
+dof = { node = 1, dir = "w" }
+[[sensors]]
+name = "d"
+dof = { node = 1, dir = "w" }
+quantity = "displacement"
+[[connections]]
+name = "j"
+dof = { node = 1, dir = "w" }
+basis = ["u", "v"]
+[integrator]
+dt_s = 0.01
+"#;
+
+    #[test]
+    fn parses_a_minimal_setup() {
+        let s = Setup::from_toml(TINY, "tiny").unwrap();
+        assert_eq!(s.n_params(), 2);
+        assert_eq!(s.param_keys(), vec!["j.u", "j.v"]);
+        assert_eq!(s.estimator.kind, EstimatorKind::Kalman);
+    }
+
+    #[test]
+    fn unknown_key_is_named() {
+        let text = TINY.replace("dt_s = 0.01", "dt_s = 0.01\ndtt = 3");
+        let e = Setup::from_toml(&text, "tiny").unwrap_err().to_string();
+        assert!(e.contains("dtt"), "{e}");
+    }
+
+    #[test]
+    fn bad_basis_and_unstable_newmark_are_named() {
+        let e = Setup::from_toml(&TINY.replace("\"v\"]", "\"w\"]"), "t")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("connections[0].basis[1]") && e.contains("`w`"), "{e}");
+        let e = Setup::from_toml(&TINY.replace("dt_s = 0.01", "dt_s = 0.01\nbeta = 0.1"), "t")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("not unconditionally stable"), "{e}");
+    }
+
+    #[test]
+    fn basis_parse_and_eval() {
+        assert_eq!(Basis::parse("const(100)").unwrap(), Basis::Const(100.0));
+        assert_eq!(Basis::parse(" sign( v ) ").unwrap(), Basis::SignV);
+        assert!(Basis::parse("const(x)").is_err());
+        assert_eq!(Basis::Gap(0.1).eval(0.3, 0.0, 0.0), 0.3 - 0.1);
+        assert_eq!(Basis::Gap(0.1).eval(0.05, 0.0, 0.0), 0.0);
+        assert_eq!(Basis::U3.eval(2.0, 0.0, 0.0), 8.0);
+    }
+}
