@@ -325,7 +325,7 @@ pub struct EstimatorSpec {
     /// Stop when every parameter moved less than this many standard errors in a pass.
     #[serde(default = "default_tol_se")]
     pub tolerance_std_errors: f64,
-    /// …or less than this relative change (whichever comes first).
+    /// …or changed the fitted connection force by less than this fraction of its RMS.
     #[serde(default = "default_tol_rel")]
     pub tolerance_relative: f64,
     /// Largest acceptable condition number of the parameter fit.
@@ -341,10 +341,10 @@ fn default_passes() -> usize {
     10
 }
 fn default_tol_se() -> f64 {
-    0.01
+    0.1
 }
 fn default_tol_rel() -> f64 {
-    1e-9
+    1e-8
 }
 fn default_max_cond() -> f64 {
     1e12

@@ -157,11 +157,13 @@ impl ResidualEstimator for PaperEstimator {
     fn start(&mut self, _sample: u64, excitation: &[f64]) {
         let n = self.stepper.n;
         self.state = State::zeros(n);
+        // A pass starts at rest with zero total connection force (recordings start from
+        // rest; a stuck joint at rest carries nothing). The explicit part of f̂ is still
+        // evaluated so the first prediction uses the current law.
         let q = self.law.q();
         let z = DVector::zeros(q);
         self.law.explicit_force(&z, &z, &z, &mut self.g);
-        let g = self.g.clone();
-        self.stepper.initial_acceleration(&mut self.state, excitation, &g);
+        self.stepper.initial_acceleration(&mut self.state, excitation, &z);
         self.p_prev.copy_from_slice(excitation);
     }
 

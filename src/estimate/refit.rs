@@ -61,6 +61,10 @@ pub struct Fit {
     /// Root-mean-square of the fit residual (N).
     pub rms_residual: f64,
     pub rows: usize,
+    /// RMS of each basis column over the rows, and of the fitted force: together they
+    /// turn a parameter change into a force change for the stopping rule.
+    pub column_rms: Vec<f64>,
+    pub force_rms: f64,
 }
 
 impl RecursiveLeastSquares {
@@ -201,6 +205,10 @@ impl RecursiveLeastSquares {
             condition,
             rms_residual: (self.rss / self.weight.max(1.0)).sqrt(),
             rows: self.rows,
+            column_rms: (0..p)
+                .map(|j| self.r.column(j).norm() / self.weight.max(1.0).sqrt())
+                .collect(),
+            force_rms: ((self.z.norm_squared() + self.rss) / self.weight.max(1.0)).sqrt(),
         })
     }
 }

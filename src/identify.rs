@@ -1,0 +1,450 @@
+//! Steps V and VI: passes over a recorded test. Each pass builds the model with the current
+//! parameters (linear terms into K, C, M; the rest as explicit forces), runs a residual
+//! estimator over every sample, accumulates the least-squares fit online and solves it at
+//! the end of the pass; passes repeat until the parameters stop moving.
+//!
+//! Stopping rule (the paper asks for one): stop after pass k ≥ 2 when every parameter
+//! moved by less than `tolerance_std_errors` of its standard error, or its change moves
+//! the fitted connection force by less than `tolerance_relative` of the force's RMS
+//! (`|Δpⱼ|·rms(vⱼ) ≤ tol·rms(f)`, which catches noise-free data where standard errors are
+//! round-off); otherwise stop at `passes` and say it did not converge.
+//!
+//! Samples on a `sign` switching surface (a stuck joint: `δ̇ ≈ 0` for `sign(v)`, `δ ≈ 0` for
+//! `sign(u)`) carry an unknown friction force anywhere in `[−F, F]`; they are excluded from
+//! that connection's fit. "≈ 0" means within `stick_band` × the largest |δ̇| (or |δ|) seen so
+//! far in the pass, plus the estimator's own uncertainty of the variable when it reports
+//! one. The count of excluded samples is reported.
+
+use nalgebra::DVector;
+use serde::Serialize;
+
+use crate::estimate::paper::{EstimatorInputs, PaperEstimator};
+use crate::estimate::refit::{Fit, RecursiveLeastSquares, RefitError};
+use crate::estimate::{ConnectionLaw, EstimateError, EstimatorDiagnostics, ResidualEstimator, StepOutput};
+use crate::model::Model;
+use crate::setup::{Basis, EstimatorKind, Setup, Weighting};
+
+#[derive(Debug, thiserror::Error)]
+pub enum IdentifyError {
+    #[error(transparent)]
+    Model(#[from] crate::model::ModelError),
+    #[error(transparent)]
+    Estimate(#[from] EstimateError),
+    #[error("pass {pass}, connection `{connection}`: {source}")]
+    Refit {
+        pass: usize,
+        connection: String,
+        source: RefitError,
+    },
+    #[error("the data hold {0} samples; at least 3 are needed")]
+    TooShort(usize),
+}
+
+/// The measured test, aligned by sample: `excitation[i]` and `response[i]` belong to
+/// `samples[i]`, in setup channel order.
+#[derive(Debug, Clone, Default)]
+pub struct TestData {
+    pub samples: Vec<u64>,
+    pub t_ns: Vec<u64>,
+    pub excitation: Vec<Vec<f64>>,
+    pub response: Vec<Vec<f64>>,
+}
+
+impl TestData {
+    pub fn len(&self) -> usize {
+        self.samples.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.samples.is_empty()
+    }
+
+    /// Root-mean-square of each response channel (a scale for the weights when no noise
+    /// level is known).
+    pub fn response_rms(&self) -> Vec<f64> {
+        let m = self.response.first().map_or(0, |r| r.len());
+        (0..m)
+            .map(|k| {
+                let s: f64 = self.response.iter().map(|y| y[k] * y[k]).sum();
+                (s / self.len().max(1) as f64).sqrt().max(f64::MIN_POSITIVE)
+            })
+            .collect()
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct IdentifyOptions {
+    pub estimator: EstimatorKind,
+    pub weighting: Weighting,
+    pub passes: usize,
+    pub tolerance_std_errors: f64,
+    pub tolerance_relative: f64,
+    pub max_condition: f64,
+    /// Relative width of the excluded band around a sign switching surface.
+    pub stick_band: f64,
+    /// Substeps of the identification model per sample.
+    pub substeps: usize,
+    /// Random-walk std of the residual force per sample for the Kalman estimator, N.
+    pub force_walk_std: Option<f64>,
+}
+
+impl IdentifyOptions {
+    pub fn from_setup(setup: &Setup) -> Self {
+        let e = &setup.estimator;
+        Self {
+            estimator: e.kind,
+            weighting: e.weighting,
+            passes: e.passes,
+            tolerance_std_errors: e.tolerance_std_errors,
+            tolerance_relative: e.tolerance_relative,
+            max_condition: e.max_condition,
+            stick_band: 1e-6,
+            substeps: setup.substeps,
+            force_walk_std: e.force_walk_std,
+        }
+    }
+}
+
+/// One parameter's estimate.
+#[derive(Debug, Clone, Serialize)]
+pub struct ParameterEstimate {
+    pub connection: String,
+    pub basis: String,
+    pub unit: String,
+    pub value: f64,
+    pub std_error: f64,
+    /// 95 % confidence interval, value ± 1.96·std_error.
+    pub ci95: [f64; 2],
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub truth: Option<f64>,
+}
+
+/// What one pass found.
+#[derive(Debug, Clone, Serialize)]
+pub struct PassReport {
+    pub pass: usize,
+    pub parameters: Vec<ParameterEstimate>,
+    /// Per connection: condition number of the column-scaled fit.
+    pub fit_condition: Vec<f64>,
+    /// Per connection: RMS of the fit residual, N.
+    pub fit_rms_residual: Vec<f64>,
+    pub rows_used: Vec<usize>,
+    pub rows_excluded_stuck: Vec<usize>,
+    pub diagnostics: EstimatorDiagnostics,
+    /// Largest |Δp|/se against the previous pass.
+    pub max_change_std_errors: Option<f64>,
+    /// Largest |Δpⱼ|·rms(vⱼ)/rms(f) against the previous pass.
+    pub max_change_force_relative: Option<f64>,
+    #[serde(skip)]
+    force_scales: Vec<(f64, f64)>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Identification {
+    pub estimator: String,
+    pub passes: Vec<PassReport>,
+    pub converged: bool,
+    pub stop_reason: String,
+    /// Set when a pass failed; the passes before it are kept.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub failure: Option<String>,
+}
+
+impl Identification {
+    pub fn final_parameters(&self) -> Option<&[ParameterEstimate]> {
+        self.passes.last().map(|p| p.parameters.as_slice())
+    }
+}
+
+/// Per-sample record of the final pass, for output files.
+#[derive(Debug, Clone, Serialize)]
+pub struct SampleRecord {
+    pub sample: u64,
+    pub residual: Vec<f64>,
+    pub force: Vec<f64>,
+    pub delta: Vec<f64>,
+    pub delta_v: Vec<f64>,
+    pub delta_a: Vec<f64>,
+}
+
+/// Build the estimator for one pass.
+pub fn build_estimator(
+    setup: &Setup,
+    model: &Model,
+    params: &[f64],
+    opts: &IdentifyOptions,
+    channel_sigma: &[f64],
+    samples: usize,
+) -> Result<Box<dyn ResidualEstimator>, EstimateError> {
+    let with_terms = model.with_connection_terms(setup, params);
+    let inputs = EstimatorInputs {
+        model: &with_terms,
+        law: ConnectionLaw::new(setup, params),
+        dt_s: setup.dt_s,
+        substeps: opts.substeps,
+        newmark: setup.newmark,
+        weighting: opts.weighting,
+        channel_sigma: channel_sigma.to_vec(),
+        spectral_diagnostics: 3 * model.n() <= 600,
+    };
+    Ok(match opts.estimator {
+        EstimatorKind::Paper => Box::new(PaperEstimator::new(inputs)?),
+        EstimatorKind::Kalman => Box::new(crate::estimate::kalman::KalmanEstimator::new(
+            inputs,
+            opts.force_walk_std,
+            samples,
+        )?),
+    })
+}
+
+/// Absolute floors of the stick band: 1 pm and 1 nm/s, below anything a transducer
+/// resolves, so a joint stuck from the first sample is recognised before any peak is known.
+const STICK_FLOOR_U: f64 = 1e-12;
+const STICK_FLOOR_V: f64 = 1e-9;
+
+/// The online Step V accumulator: one recursive least-squares fit per connection, with the
+/// stuck-sample exclusion.
+pub struct ParameterAccumulator {
+    fits: Vec<RecursiveLeastSquares>,
+    blocks: Vec<Vec<Basis>>,
+    labels: Vec<Vec<String>>,
+    peak_d: Vec<f64>,
+    peak_v: Vec<f64>,
+    excluded: Vec<usize>,
+    stick_band: f64,
+    row: Vec<f64>,
+}
+
+impl ParameterAccumulator {
+    pub fn new(setup: &Setup, stick_band: f64, forgetting: f64) -> Self {
+        let blocks: Vec<Vec<Basis>> = setup.connections.iter().map(|c| c.basis.clone()).collect();
+        let maxp = blocks.iter().map(|b| b.len()).max().unwrap_or(0);
+        Self {
+            fits: blocks.iter().map(|b| RecursiveLeastSquares::new(b.len(), forgetting)).collect(),
+            labels: setup
+                .connections
+                .iter()
+                .map(|c| c.basis.iter().map(|b| format!("{}.{}", c.name, b.label())).collect())
+                .collect(),
+            peak_d: vec![0.0; blocks.len()],
+            peak_v: vec![0.0; blocks.len()],
+            excluded: vec![0; blocks.len()],
+            blocks,
+            stick_band,
+            row: vec![0.0; maxp],
+        }
+    }
+
+    /// Add one sample's estimate. No allocation.
+    pub fn push(&mut self, out: &StepOutput) {
+        for (c, basis) in self.blocks.iter().enumerate() {
+            let (d, dv, da) = (out.delta[c], out.delta_v[c], out.delta_a[c]);
+            self.peak_d[c] = self.peak_d[c].max(d.abs());
+            self.peak_v[c] = self.peak_v[c].max(dv.abs());
+            let stuck = basis.iter().any(|b| match b {
+                Basis::SignV => dv.abs() <= (self.stick_band * self.peak_v[c]).max(STICK_FLOOR_V),
+                Basis::SignU => d.abs() <= (self.stick_band * self.peak_d[c]).max(STICK_FLOOR_U),
+                _ => false,
+            });
+            if stuck {
+                self.excluded[c] += 1;
+                continue;
+            }
+            let row = &mut self.row[..basis.len()];
+            for (x, b) in row.iter_mut().zip(basis) {
+                *x = b.eval(d, dv, da);
+            }
+            self.fits[c].push(row, out.force[c]);
+        }
+    }
+
+    pub fn solve(&self, max_condition: f64) -> Vec<Result<Fit, RefitError>> {
+        self.fits
+            .iter()
+            .zip(&self.labels)
+            .map(|(f, l)| f.solve(l, max_condition))
+            .collect()
+    }
+
+    pub fn rows(&self) -> Vec<usize> {
+        self.fits.iter().map(|f| f.rows()).collect()
+    }
+
+    pub fn excluded(&self) -> Vec<usize> {
+        self.excluded.clone()
+    }
+}
+
+/// Run the identification (Steps I–VI) over recorded data.
+///
+/// `on_pass` is told about each finished pass (for progress and per-pass outputs);
+/// `on_sample` receives `(pass, record)` for every sample of every pass.
+pub fn identify(
+    setup: &Setup,
+    data: &TestData,
+    opts: &IdentifyOptions,
+    truth: Option<&[f64]>,
+    on_pass: &mut dyn FnMut(&PassReport),
+    on_sample: &mut dyn FnMut(usize, &StepOutput),
+) -> Result<Identification, IdentifyError> {
+    if data.len() < 3 {
+        return Err(IdentifyError::TooShort(data.len()));
+    }
+    let model = Model::assemble(setup)?;
+    let sigma: Vec<f64> = {
+        let rms = data.response_rms();
+        setup
+            .sensors
+            .iter()
+            .zip(rms)
+            .map(|(s, r)| s.noise_std.unwrap_or(r))
+            .collect()
+    };
+    let mut params = setup.initial_params();
+    let mut result = Identification {
+        estimator: opts.estimator.to_string(),
+        passes: Vec::new(),
+        converged: false,
+        stop_reason: String::new(),
+        failure: None,
+    };
+    let q = setup.connections.len();
+    for pass in 1..=opts.passes {
+        let outcome = run_pass(setup, &model, &params, data, opts, &sigma, pass, truth, &mut |o| on_sample(pass, o));
+        let report = match outcome {
+            Ok(r) => r,
+            Err(e) => {
+                if result.passes.is_empty() {
+                    return Err(e);
+                }
+                result.failure = Some(e.to_string());
+                result.stop_reason = format!("pass {pass} failed: {e}");
+                return Ok(result);
+            }
+        };
+        let _ = q;
+        let mut report = report;
+        let mut all_converged = false;
+        if let Some(prev) = result.passes.last() {
+            let mut max_se: f64 = 0.0;
+            let mut max_rel: f64 = 0.0;
+            all_converged = true;
+            for ((a, b), (col, frms)) in report.parameters.iter().zip(&prev.parameters).zip(&report.force_scales) {
+                let d = (a.value - b.value).abs();
+                let in_se = d / a.std_error.max(f64::MIN_POSITIVE);
+                let rel = d * col / frms.max(f64::MIN_POSITIVE);
+                max_se = max_se.max(in_se);
+                max_rel = max_rel.max(rel);
+                if !(in_se <= opts.tolerance_std_errors || rel <= opts.tolerance_relative) {
+                    all_converged = false;
+                }
+            }
+            report.max_change_std_errors = Some(max_se);
+            report.max_change_force_relative = Some(max_rel);
+        }
+        on_pass(&report);
+        params = report.parameters.iter().map(|p| p.value).collect();
+        result.passes.push(report);
+        let (rel_ok, se_ok) = (all_converged, all_converged);
+        if rel_ok || se_ok {
+            result.converged = true;
+            result.stop_reason = format!(
+                "converged after {pass} passes: every parameter moved less than {} standard errors or changed the fitted force by less than {:.0e} of its RMS",
+                opts.tolerance_std_errors, opts.tolerance_relative
+            );
+            break;
+        }
+    }
+    if !result.converged {
+        result.stop_reason = format!(
+            "not converged: reached the limit of {} passes (last change {:.3} standard errors)",
+            opts.passes,
+            result.passes.last().and_then(|p| p.max_change_std_errors).unwrap_or(f64::NAN)
+        );
+    }
+    Ok(result)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn run_pass(
+    setup: &Setup,
+    model: &Model,
+    params: &[f64],
+    data: &TestData,
+    opts: &IdentifyOptions,
+    sigma: &[f64],
+    pass: usize,
+    truth: Option<&[f64]>,
+    on_sample: &mut dyn FnMut(&StepOutput),
+) -> Result<PassReport, IdentifyError> {
+    let mut est = build_estimator(setup, model, params, opts, sigma, data.len())?;
+    let q = setup.connections.len();
+    let mut acc = ParameterAccumulator::new(setup, opts.stick_band, 1.0);
+    let mut out = StepOutput::new(q);
+    est.start(data.samples[0], &data.excitation[0]);
+    for i in 1..data.len() {
+        if est.step(data.samples[i], &data.excitation[i], &data.response[i], &mut out)? {
+            acc.push(&out);
+            on_sample(&out);
+        }
+    }
+    while est.drain(&mut out) {
+        acc.push(&out);
+        on_sample(&out);
+    }
+    let fits = acc.solve(opts.max_condition);
+    let mut parameters = Vec::new();
+    let mut cond = Vec::new();
+    let mut rms = Vec::new();
+    let mut k = 0;
+    let mut force_scales = Vec::new();
+    for (c, fit) in fits.into_iter().enumerate() {
+        let conn = &setup.connections[c];
+        let fit = fit.map_err(|source| IdentifyError::Refit {
+            pass,
+            connection: conn.name.clone(),
+            source,
+        })?;
+        for (j, b) in conn.basis.iter().enumerate() {
+            let (v, se) = (fit.values[j], fit.std_errors[j]);
+            parameters.push(ParameterEstimate {
+                connection: conn.name.clone(),
+                basis: b.label(),
+                unit: b.unit().into(),
+                value: v,
+                std_error: se,
+                ci95: [v - 1.96 * se, v + 1.96 * se],
+                truth: truth.map(|t| t[k]),
+            });
+            force_scales.push((fit.column_rms[j], fit.force_rms));
+            k += 1;
+        }
+        cond.push(fit.condition);
+        rms.push(fit.rms_residual);
+    }
+    Ok(PassReport {
+        pass,
+        parameters,
+        fit_condition: cond,
+        fit_rms_residual: rms,
+        rows_used: acc.rows(),
+        rows_excluded_stuck: acc.excluded(),
+        diagnostics: est.diagnostics().clone(),
+        max_change_std_errors: None,
+        max_change_force_relative: None,
+        force_scales,
+    })
+}
+
+/// Convert a step output to a record.
+pub fn record(out: &StepOutput) -> SampleRecord {
+    let v = |x: &DVector<f64>| x.iter().copied().collect();
+    SampleRecord {
+        sample: out.sample,
+        residual: v(&out.residual),
+        force: v(&out.force),
+        delta: v(&out.delta),
+        delta_v: v(&out.delta_v),
+        delta_a: v(&out.delta_a),
+    }
+}
