@@ -1,1 +1,325 @@
-fn main() {}
+//! `jointid`: command line. Parses arguments, calls the library (`jointid::app`), prints,
+//! and turns errors into a one-line cause and a non-zero exit code.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{Context, Result};
+use clap::{Parser, Subcommand, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use jointid::app::{self, Progress, ReplayOutcome, ReplayRequest};
+use jointid::io::FrameEncoding;
+use jointid::setup::{EstimatorKind, Setup};
+use jointid::simulate::{Noise, Scenario, SimulateOptions};
+
+#[derive(Parser)]
+#[command(
+    name = "jointid",
+    version,
+    about = "Identify structural connection parameters from vibration test data (NASA TM-101991, online)",
+    after_help = "Examples:\n  jointid replay recordings/two-beam-friction.mcap\n  jointid simulate recordings/two-beam-friction.toml --out test.mcap --scenario random --steps 2000 --noise additive:0.01\n  jointid inspect recordings/two-beam-friction.mcap"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum ScenarioArg {
+    Sine,
+    Random,
+    Free,
+    /// Random input with the true stiffness dropping by 30 % half-way (bolt loosening).
+    Loosening,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum EncodingArg {
+    Json,
+    Binary,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum EstimatorArg {
+    /// The 1989 one-step estimator (reference).
+    Paper,
+    /// Kalman joint input–state estimator with smoothing (default).
+    Kalman,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Generate a synthetic test from a setup's true connection parameters.
+    #[command(after_help = "Example:\n  jointid simulate recordings/two-beam-friction.toml --out t.mcap --scenario sine --steps 36 --noise cov:0.1 --seed 3")]
+    Simulate {
+        /// Setup file (TOML) with `truth` values on its connections.
+        setup: PathBuf,
+        /// Output recording (MCAP).
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long, value_enum, default_value = "random")]
+        scenario: ScenarioArg,
+        /// Recorded samples, including the initial one at rest.
+        #[arg(long, default_value_t = 2000)]
+        steps: usize,
+        /// Sample interval, s (default: the setup's integrator.dt_s).
+        #[arg(long)]
+        dt: Option<f64>,
+        /// Newmark steps per recorded sample (1 = the identification's own discretisation).
+        #[arg(long, default_value_t = 1)]
+        substeps: usize,
+        /// none, additive:LEVEL (σ = LEVEL × channel RMS) or cov:LEVEL (the paper's).
+        #[arg(long, default_value = "none")]
+        noise: Noise,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Force amplitude (sine, free) or RMS (random), N.
+        #[arg(long, default_value_t = 2.0e4)]
+        amplitude: f64,
+        /// Sine frequency, Hz.
+        #[arg(long, default_value_t = 200.0)]
+        freq: f64,
+        /// Impact pulse duration for `free`, s.
+        #[arg(long, default_value_t = 5.0e-4)]
+        pulse: f64,
+        #[arg(long, value_enum, default_value = "json")]
+        encoding: EncodingArg,
+    },
+    /// Identify the connection parameters from a recording (Steps I–VI, several passes).
+    #[command(after_help = "Example:\n  jointid replay recordings/two-beam-friction.mcap --out results.mcap --json")]
+    Replay {
+        recording: PathBuf,
+        /// Use this setup instead of the one attached to the recording.
+        #[arg(long)]
+        setup: Option<PathBuf>,
+        /// Maximum passes over the data (default: the setup's estimator.passes).
+        #[arg(long)]
+        passes: Option<usize>,
+        #[arg(long, value_enum)]
+        estimator: Option<EstimatorArg>,
+        /// Write inputs, residual forces, connection states, parameters and diagnostics here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Print one JSON object instead of the table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Summarise a recording: channels, samples, setup, truth, damage.
+    Inspect {
+        recording: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match run(cli) {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cli: Cli) -> Result<ExitCode> {
+    match cli.command {
+        Command::Simulate {
+            setup,
+            out,
+            scenario,
+            steps,
+            dt,
+            substeps,
+            noise,
+            seed,
+            amplitude,
+            freq,
+            pulse,
+            encoding,
+        } => {
+            let s = Setup::from_file(&setup)?;
+            let dt_s = dt.unwrap_or(s.dt_s);
+            let (sc, name) = match scenario {
+                ScenarioArg::Sine => (
+                    Scenario::Sine {
+                        freq_hz: freq,
+                        amplitude,
+                    },
+                    "sine",
+                ),
+                ScenarioArg::Random => (Scenario::Random { rms: amplitude }, "random"),
+                ScenarioArg::Free => (
+                    Scenario::Free {
+                        amplitude,
+                        pulse_s: pulse,
+                    },
+                    "free",
+                ),
+                ScenarioArg::Loosening => (
+                    Scenario::RandomStiffnessDrop {
+                        rms: amplitude,
+                        at_s: 0.5 * steps as f64 * dt_s,
+                        factor: 0.7,
+                    },
+                    "loosening",
+                ),
+            };
+            let opts = SimulateOptions {
+                scenario: sc,
+                steps,
+                dt_s,
+                substeps,
+                noise,
+                seed,
+            };
+            let enc = match encoding {
+                EncodingArg::Json => FrameEncoding::Json,
+                EncodingArg::Binary => FrameEncoding::Binary,
+            };
+            let sum = app::simulate_recording(&s, &opts, &out, enc, name)
+                .with_context(|| format!("simulating {}", setup.display()))?;
+            println!(
+                "wrote {} ({} samples, {name}, noise {noise}, {substeps} sub-steps; joint stuck {:.1} % of samples)",
+                sum.out.display(),
+                sum.samples,
+                100.0 * sum.stuck_fraction
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Replay {
+            recording,
+            setup,
+            passes,
+            estimator,
+            out,
+            json,
+        } => {
+            let req = ReplayRequest {
+                recording,
+                setup,
+                passes,
+                estimator: estimator.map(|e| match e {
+                    EstimatorArg::Paper => EstimatorKind::Paper,
+                    EstimatorArg::Kalman => EstimatorKind::Kalman,
+                }),
+                out,
+            };
+            let bar = ProgressBar::new(0);
+            bar.set_style(
+                ProgressStyle::with_template("{prefix} [{bar:40}] {pos}/{len} samples {msg}")
+                    .unwrap_or_else(|_| ProgressStyle::default_bar()),
+            );
+            let mut n = 0u64;
+            let outcome = app::replay(&req, &mut |p| match p {
+                Progress::Start { samples, .. } => {
+                    n = samples as u64;
+                    bar.set_length(n);
+                    bar.set_prefix("pass 1");
+                }
+                Progress::Samples { pass, done } => {
+                    bar.set_prefix(format!("pass {pass}"));
+                    bar.set_position(done as u64);
+                }
+                Progress::Pass(r) => {
+                    bar.set_position(n);
+                    bar.set_prefix(format!("pass {}", r.pass + 1));
+                    bar.set_message(format!(
+                        "last change {:.3} se",
+                        r.max_change_std_errors.unwrap_or(f64::NAN)
+                    ));
+                    bar.reset();
+                }
+            })?;
+            bar.finish_and_clear();
+            if json {
+                println!("{}", serde_json::to_string_pretty(&outcome)?);
+            } else {
+                print_table(&outcome);
+            }
+            if let Some(e) = &outcome.input_error {
+                anyhow::bail!("{e} (the {} samples before it were identified and written)", outcome.samples);
+            }
+            if let Some(f) = &outcome.identification.failure {
+                anyhow::bail!("{f}");
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Inspect { recording, json } => {
+            let i = app::inspect(&recording)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&i)?);
+            } else {
+                println!("{}", i.path.display());
+                println!("  encoding     {}", i.encoding);
+                println!("  setup        {}", i.setup_title.as_deref().unwrap_or(if i.setup_attached { "(attached, invalid)" } else { "(none)" }));
+                println!("  excitation   {} frames: {}", i.excitation_frames, i.excitation_channels.join(", "));
+                println!("  response     {} frames: {}", i.response_frames, i.response_channels.join(", "));
+                println!(
+                    "  samples      {:?} .. {:?} ({:.6} s)",
+                    i.first_sample, i.last_sample, i.duration_s
+                );
+                for (k, v) in &i.truth {
+                    println!("  truth        {k} = {v}");
+                }
+                for (k, v) in &i.facts {
+                    println!("  fact         {k} = {v}");
+                }
+                if let Some(d) = &i.damage {
+                    println!("  DAMAGED      {d}");
+                }
+                if let Some(e) = &i.error {
+                    println!("  ERROR        {e}");
+                }
+            }
+            Ok(if i.error.is_some() { ExitCode::FAILURE } else { ExitCode::SUCCESS })
+        }
+    }
+}
+
+fn print_table(o: &ReplayOutcome) {
+    let id = &o.identification;
+    for w in &o.input_warnings {
+        println!("warning: {w}");
+    }
+    println!("{} — {} samples, estimator {}", o.recording.display(), o.samples, id.estimator);
+    for p in &id.passes {
+        let d = &p.diagnostics;
+        println!(
+            "  pass {:>2}: cond(W½S) {:.3e}, |S| {:.3e}, error recursion ρ {}, fit cond {}, stuck samples excluded {:?}",
+            p.pass,
+            d.sensitivity_condition,
+            d.sensitivity_gain,
+            d.error_spectral_radius.map_or("-".into(), |r| format!("{r:.4}")),
+            p.fit_condition.iter().map(|c| format!("{c:.2e}")).collect::<Vec<_>>().join("/"),
+            p.rows_excluded_stuck
+        );
+    }
+    if let Some(last) = id.passes.last() {
+        for w in &last.diagnostics.warnings {
+            println!("warning: {w}");
+        }
+        println!();
+        println!(
+            "{:<12} {:<12} {:>14} {:>12} {:>14} {:>9}  unit",
+            "connection", "basis", "value", "std error", "truth", "error %"
+        );
+        for p in &last.parameters {
+            let (truth, err) = match p.truth {
+                Some(t) if t != 0.0 => (format!("{t:.6e}"), format!("{:.3}", 100.0 * (p.value - t) / t.abs())),
+                Some(t) => (format!("{t:.6e}"), "-".into()),
+                None => ("-".into(), "-".into()),
+            };
+            println!(
+                "{:<12} {:<12} {:>14.6e} {:>12.3e} {:>14} {:>9}  {}",
+                p.connection, p.basis, p.value, p.std_error, truth, err, p.unit
+            );
+        }
+    }
+    println!();
+    println!("{} pass(es): {}", id.passes.len(), id.stop_reason);
+    if let Some(out) = &o.output {
+        println!("results written to {}", out.display());
+    }
+}

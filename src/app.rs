@@ -1,0 +1,534 @@
+//! What the command line does, as library functions the binaries and tests call:
+//! `simulate` a test into a recording, `replay` a recording through the identification,
+//! `inspect` a recording. Binaries only parse arguments and print.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::Serialize;
+use serde_json::json;
+
+use crate::align::{AlignError, align};
+use crate::estimate::StepOutput;
+use crate::identify::{Identification, IdentifyOptions, PassReport, identify};
+use crate::io::mcap::{
+    ChannelInfo, DIAGNOSTICS_TOPIC, McapIoError, PARAMETERS_TOPIC, RECORDING_METADATA, RESIDUALS_TOPIC,
+    RecordingWriter, STATES_TOPIC, TRUTH_METADATA, stream_frames,
+};
+use crate::io::{Frame, FrameEncoding};
+use crate::setup::{EstimatorKind, Setup, SetupError};
+use crate::simulate::{SimulateOptions, simulate};
+
+#[derive(Debug, thiserror::Error)]
+pub enum AppError {
+    #[error(transparent)]
+    Setup(#[from] SetupError),
+    #[error(transparent)]
+    Mcap(#[from] McapIoError),
+    #[error(transparent)]
+    Simulate(#[from] crate::simulate::SimulateError),
+    #[error("{path}: {source}")]
+    Identify {
+        path: PathBuf,
+        source: crate::identify::IdentifyError,
+    },
+    #[error("{path}: {source}")]
+    Align { path: PathBuf, source: AlignError },
+    #[error("{path}: no setup attached and none given with --setup")]
+    NoSetup { path: PathBuf },
+    #[error("{path}: {topic} channels {got:?} do not match the setup's {expected:?}")]
+    ChannelNames {
+        path: PathBuf,
+        topic: &'static str,
+        expected: Vec<String>,
+        got: Vec<String>,
+    },
+    #[error("{path}: only {samples} usable samples before: {cause}")]
+    TooLittleData {
+        path: PathBuf,
+        samples: usize,
+        cause: String,
+    },
+}
+
+fn channel_info(names: impl Iterator<Item = (String, String)>) -> ChannelInfo {
+    let (names, units) = names.unzip();
+    ChannelInfo { names, units }
+}
+
+pub fn excitation_channels(setup: &Setup) -> ChannelInfo {
+    channel_info(setup.excitation.iter().map(|e| (e.name.clone(), e.unit.clone())))
+}
+
+pub fn response_channels(setup: &Setup) -> ChannelInfo {
+    channel_info(setup.sensors.iter().map(|s| (s.name.clone(), s.unit.clone())))
+}
+
+/// Summary of a simulated recording.
+#[derive(Debug, Clone, Serialize)]
+pub struct SimulateSummary {
+    pub out: PathBuf,
+    pub samples: usize,
+    pub truth: BTreeMap<String, f64>,
+    pub stuck_fraction: f64,
+}
+
+/// Simulate a test and write it as a recording (setup attached, truth in the metadata).
+pub fn simulate_recording(
+    setup: &Setup,
+    opts: &SimulateOptions,
+    out: &Path,
+    encoding: FrameEncoding,
+    scenario_name: &str,
+) -> Result<SimulateSummary, AppError> {
+    let sim = simulate(setup, opts)?;
+    let mut w = RecordingWriter::create(out, encoding)?;
+    let mut setup_text = setup.toml_text.clone();
+    if (opts.dt_s - setup.dt_s).abs() > 1e-12 * setup.dt_s {
+        // Keep the attached setup true to the data: the replay reads dt_s from it.
+        setup_text = replace_dt(&setup_text, opts.dt_s);
+    }
+    w.attach_setup(&setup_text)?;
+    let truth: BTreeMap<String, f64> = setup.param_keys().into_iter().zip(sim.truth.iter().copied()).collect();
+    w.write_metadata(
+        TRUTH_METADATA,
+        &truth.iter().map(|(k, v)| (k.clone(), format!("{v:e}"))).collect(),
+    )?;
+    let facts: BTreeMap<String, String> = [
+        ("generator", format!("jointid simulate {}", env!("CARGO_PKG_VERSION"))),
+        ("scenario", scenario_name.to_string()),
+        ("steps", opts.steps.to_string()),
+        ("dt_s", format!("{:e}", opts.dt_s)),
+        ("substeps", opts.substeps.to_string()),
+        ("noise", opts.noise.to_string()),
+        ("seed", opts.seed.to_string()),
+        ("stuck_fraction", format!("{:.4}", sim.stuck_fraction)),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), v))
+    .collect();
+    w.write_metadata(RECORDING_METADATA, &facts)?;
+    w.declare_inputs(&excitation_channels(setup), &response_channels(setup))?;
+    for i in 0..sim.excitation.len() {
+        let t_ns = (i as f64 * opts.dt_s * 1e9).round() as u64;
+        w.write_excitation(&Frame {
+            sample: i as u64,
+            t_ns,
+            values: sim.excitation[i].clone(),
+        })?;
+        w.write_response(&Frame {
+            sample: i as u64,
+            t_ns,
+            values: sim.response[i].clone(),
+        })?;
+    }
+    w.finish()?;
+    Ok(SimulateSummary {
+        out: out.to_path_buf(),
+        samples: sim.excitation.len(),
+        truth,
+        stuck_fraction: sim.stuck_fraction,
+    })
+}
+
+fn replace_dt(text: &str, dt: f64) -> String {
+    text.lines()
+        .map(|l| {
+            if l.trim_start().starts_with("dt_s") {
+                format!("dt_s = {dt:e}")
+            } else {
+                l.to_string()
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// What `replay` is asked to do.
+#[derive(Debug, Clone, Default)]
+pub struct ReplayRequest {
+    pub recording: PathBuf,
+    /// Overrides the attached setup.
+    pub setup: Option<PathBuf>,
+    pub passes: Option<usize>,
+    pub estimator: Option<EstimatorKind>,
+    pub out: Option<PathBuf>,
+}
+
+/// What `replay` found.
+#[derive(Debug, Clone, Serialize)]
+pub struct ReplayOutcome {
+    pub recording: PathBuf,
+    pub samples: usize,
+    #[serde(flatten)]
+    pub identification: Identification,
+    /// Problems with the input that did not stop the replay (truncation, a bad sample after
+    /// which the data were cut).
+    pub input_warnings: Vec<String>,
+    /// The input error that cut the data short, if any: the replay used what came before
+    /// it, and the command exits with an error after writing its outputs.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub input_error: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub output: Option<PathBuf>,
+}
+
+/// Progress events for a progress bar.
+pub enum Progress<'a> {
+    Start { samples: usize, passes: usize },
+    Samples { pass: usize, done: usize },
+    Pass(&'a PassReport),
+}
+
+/// Replay a recording through the identification (Steps I–VI) and write the results.
+pub fn replay(req: &ReplayRequest, progress: &mut dyn FnMut(Progress<'_>)) -> Result<ReplayOutcome, AppError> {
+    let path = req.recording.clone();
+    let mut stream = stream_frames(&path)?;
+    let header = stream.header.clone();
+    let setup = match &req.setup {
+        Some(p) => Setup::from_file(p)?,
+        None => {
+            let text = header.setup_toml.clone().ok_or(AppError::NoSetup { path: path.clone() })?;
+            Setup::from_toml(&text, &format!("{} (attached setup.toml)", path.display()))?
+        }
+    };
+    let exc = excitation_channels(&setup);
+    let resp = response_channels(&setup);
+    for (topic, want, got) in [
+        ("excitation", &exc.names, &header.excitation_channels.names),
+        ("response", &resp.names, &header.response_channels.names),
+    ] {
+        if want != got {
+            return Err(AppError::ChannelNames {
+                path: path.clone(),
+                topic,
+                expected: want.clone(),
+                got: got.clone(),
+            });
+        }
+    }
+    // Read every frame; an error ends the data there but keeps what came before.
+    let mut excitation = Vec::new();
+    let mut response = Vec::new();
+    let mut input_error: Option<String> = None;
+    for item in stream.by_ref() {
+        match item {
+            Ok((crate::io::mcap::InputTopic::Excitation, f)) => excitation.push(f),
+            Ok((crate::io::mcap::InputTopic::Response, f)) => response.push(f),
+            Err(e) => {
+                input_error = Some(e.to_string());
+                break;
+            }
+        }
+    }
+    let mut input_warnings = Vec::new();
+    if let Some(d) = stream.damage() {
+        input_warnings.push(format!("{}: {d}", path.display()));
+    }
+    let (data, align_err) = align(&excitation, &response, exc.names.len(), resp.names.len(), setup.dt_s);
+    if let Some(e) = align_err {
+        // A ragged end (one topic one frame longer) after truncation or an error is expected.
+        let cut = input_error.is_some() || stream.damage().is_some();
+        let ragged = matches!(e, AlignError::Unpaired { .. }) && cut;
+        if !ragged && input_error.is_none() {
+            input_error = Some(format!("{}: {e}", path.display()));
+        }
+    }
+    drop(excitation);
+    drop(response);
+    if data.len() < 3 {
+        return Err(AppError::TooLittleData {
+            path: path.clone(),
+            samples: data.len(),
+            cause: input_error.unwrap_or_else(|| "the recording is empty".into()),
+        });
+    }
+    let mut opts = IdentifyOptions::from_setup(&setup);
+    if let Some(p) = req.passes {
+        opts.passes = p.max(1);
+    }
+    if let Some(k) = req.estimator {
+        opts.estimator = k;
+    }
+    let keys = setup.param_keys();
+    let truth: Option<Vec<f64>> = if keys.iter().all(|k| header.truth.contains_key(k)) && !header.truth.is_empty() {
+        Some(keys.iter().map(|k| header.truth[k]).collect())
+    } else {
+        None
+    };
+    progress(Progress::Start {
+        samples: data.len(),
+        passes: opts.passes,
+    });
+    // Keep the per-sample estimates of the latest pass for the output file.
+    let mut last_pass: Vec<(usize, StepOutput)> = Vec::new();
+    let mut current_pass = 0usize;
+    let mut current: Vec<StepOutput> = Vec::with_capacity(data.len());
+    let progress = std::cell::RefCell::new(progress);
+    let result = identify(
+        &setup,
+        &data,
+        &opts,
+        truth.as_deref(),
+        &mut |r| (progress.borrow_mut())(Progress::Pass(r)),
+        &mut |pass, o| {
+            if pass != current_pass {
+                current.clear();
+                current_pass = pass;
+            }
+            current.push(o.clone());
+            if current.len() % 4096 == 0 {
+                (progress.borrow_mut())(Progress::Samples {
+                    pass,
+                    done: current.len(),
+                });
+            }
+        },
+    );
+    let identification = result.map_err(|source| AppError::Identify {
+        path: path.clone(),
+        source,
+    })?;
+    // The outputs of the last *reported* pass: if a later pass failed half-way its samples
+    // are dropped, the reported pass's are kept.
+    if let Some(last) = identification.passes.last()
+        && last.pass == current_pass
+    {
+        last_pass = current.drain(..).map(|o| (current_pass, o)).collect();
+    }
+    let mut outcome = ReplayOutcome {
+        recording: path.clone(),
+        samples: data.len(),
+        identification,
+        input_warnings,
+        input_error,
+        output: None,
+    };
+    if let Some(out) = &req.out {
+        write_results(out, &setup, &header, &data, &outcome, &last_pass)?;
+        outcome.output = Some(out.clone());
+    }
+    Ok(outcome)
+}
+
+/// JSON Schemas of the output topics, so Foxglove and other tools can read them.
+fn residual_schema() -> serde_json::Value {
+    json!({
+        "type": "object",
+        "title": "jointid.Residuals",
+        "properties": {
+            "sample": {"type": "integer"}, "t_ns": {"type": "integer"}, "pass": {"type": "integer"},
+            "connections": {"type": "array", "items": {"type": "string"}},
+            "residual": {"type": "array", "items": {"type": "number"}, "description": "R = f − f̂ per connection, N"},
+            "force": {"type": "array", "items": {"type": "number"}, "description": "total connection force f, N, positive resisting"}
+        }
+    })
+}
+
+fn states_schema() -> serde_json::Value {
+    json!({
+        "type": "object",
+        "title": "jointid.ConnectionStates",
+        "properties": {
+            "sample": {"type": "integer"}, "t_ns": {"type": "integer"}, "pass": {"type": "integer"},
+            "delta": {"type": "array", "items": {"type": "number"}, "description": "deformation δ, m"},
+            "delta_v": {"type": "array", "items": {"type": "number"}, "description": "rate δ̇, m/s"},
+            "delta_a": {"type": "array", "items": {"type": "number"}, "description": "acceleration δ̈, m/s²"}
+        }
+    })
+}
+
+fn parameters_schema() -> serde_json::Value {
+    json!({
+        "type": "object",
+        "title": "jointid.Parameters",
+        "properties": {
+            "pass": {"type": "integer"},
+            "final": {"type": "boolean"},
+            "converged": {"type": "boolean"},
+            "parameters": {"type": "array", "items": {"type": "object", "properties": {
+                "connection": {"type": "string"}, "basis": {"type": "string"}, "unit": {"type": "string"},
+                "value": {"type": "number"}, "std_error": {"type": "number"},
+                "ci95": {"type": "array", "items": {"type": "number"}}, "truth": {"type": "number"}
+            }}}
+        }
+    })
+}
+
+fn diagnostics_schema() -> serde_json::Value {
+    json!({"type": "object", "title": "jointid.Diagnostics"})
+}
+
+fn write_results(
+    out: &Path,
+    setup: &Setup,
+    header: &crate::io::mcap::RecordingHeader,
+    data: &crate::identify::TestData,
+    outcome: &ReplayOutcome,
+    last_pass: &[(usize, StepOutput)],
+) -> Result<(), AppError> {
+    let mut w = RecordingWriter::create(out, FrameEncoding::Json)?;
+    w.attach_setup(&setup.toml_text)?;
+    if !header.truth.is_empty() {
+        w.write_metadata(
+            TRUTH_METADATA,
+            &header.truth.iter().map(|(k, v)| (k.clone(), format!("{v:e}"))).collect(),
+        )?;
+    }
+    let mut facts = header.facts.clone();
+    facts.insert("replayed_from".into(), outcome.recording.display().to_string());
+    facts.insert("estimator".into(), outcome.identification.estimator.clone());
+    w.write_metadata(RECORDING_METADATA, &facts)?;
+    w.declare_inputs(&excitation_channels(setup), &response_channels(setup))?;
+    let names: Vec<String> = setup.connections.iter().map(|c| c.name.clone()).collect();
+    let t_of = |s: u64| -> u64 {
+        data.samples
+            .iter()
+            .position(|&x| x == s)
+            .map_or(0, |i| data.t_ns[i])
+    };
+    let first = data.samples[0];
+    for i in 0..data.len() {
+        let (s, t) = (data.samples[i], data.t_ns[i]);
+        w.write_excitation(&Frame {
+            sample: s,
+            t_ns: t,
+            values: data.excitation[i].clone(),
+        })?;
+        w.write_response(&Frame {
+            sample: s,
+            t_ns: t,
+            values: data.response[i].clone(),
+        })?;
+    }
+    let (rs, ss) = (residual_schema(), states_schema());
+    for (pass, o) in last_pass {
+        // Samples are consecutive from `first`, so the time is found by offset.
+        let idx = (o.sample - first) as usize;
+        let t = data.t_ns.get(idx).copied().unwrap_or_else(|| t_of(o.sample));
+        let v = |x: &nalgebra::DVector<f64>| x.iter().copied().collect::<Vec<f64>>();
+        w.write_output(
+            RESIDUALS_TOPIC,
+            "jointid.Residuals",
+            &rs,
+            t,
+            &json!({"sample": o.sample, "t_ns": t, "pass": pass, "connections": names,
+                    "residual": v(&o.residual), "force": v(&o.force)}),
+        )?;
+        w.write_output(
+            STATES_TOPIC,
+            "jointid.ConnectionStates",
+            &ss,
+            t,
+            &json!({"sample": o.sample, "t_ns": t, "pass": pass,
+                    "delta": v(&o.delta), "delta_v": v(&o.delta_v), "delta_a": v(&o.delta_a)}),
+        )?;
+    }
+    let t_end = data.t_ns.last().copied().unwrap_or(0);
+    let (ps, ds) = (parameters_schema(), diagnostics_schema());
+    let n = outcome.identification.passes.len();
+    for (k, p) in outcome.identification.passes.iter().enumerate() {
+        let last = k + 1 == n;
+        w.write_output(
+            PARAMETERS_TOPIC,
+            "jointid.Parameters",
+            &ps,
+            t_end,
+            &json!({"pass": p.pass, "final": last, "converged": last && outcome.identification.converged,
+                    "parameters": p.parameters}),
+        )?;
+        w.write_output(
+            DIAGNOSTICS_TOPIC,
+            "jointid.Diagnostics",
+            &ds,
+            t_end,
+            &json!({"pass": p.pass, "estimator": p.diagnostics, "fit_condition": p.fit_condition,
+                    "fit_rms_residual_N": p.fit_rms_residual, "rows_used": p.rows_used,
+                    "rows_excluded_stuck": p.rows_excluded_stuck,
+                    "max_change_std_errors": p.max_change_std_errors}),
+        )?;
+    }
+    w.write_output(
+        DIAGNOSTICS_TOPIC,
+        "jointid.Diagnostics",
+        &ds,
+        t_end,
+        &json!({"summary": true, "converged": outcome.identification.converged,
+                "stop_reason": outcome.identification.stop_reason,
+                "failure": outcome.identification.failure,
+                "input_warnings": outcome.input_warnings, "input_error": outcome.input_error}),
+    )?;
+    w.finish()?;
+    Ok(())
+}
+
+/// Summary of a recording for `jointid inspect`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Inspection {
+    pub path: PathBuf,
+    pub encoding: String,
+    pub excitation_channels: Vec<String>,
+    pub response_channels: Vec<String>,
+    pub excitation_frames: usize,
+    pub response_frames: usize,
+    pub first_sample: Option<u64>,
+    pub last_sample: Option<u64>,
+    pub duration_s: f64,
+    pub setup_attached: bool,
+    pub setup_title: Option<String>,
+    pub truth: BTreeMap<String, f64>,
+    pub facts: BTreeMap<String, String>,
+    pub damage: Option<String>,
+    pub error: Option<String>,
+}
+
+pub fn inspect(path: &Path) -> Result<Inspection, AppError> {
+    let mut stream = stream_frames(path)?;
+    let h = stream.header.clone();
+    let (mut ne, mut nr) = (0, 0);
+    let (mut first, mut last, mut t0, mut t1) = (None, None, 0u64, 0u64);
+    let mut error = None;
+    for item in stream.by_ref() {
+        match item {
+            Ok((topic, f)) => {
+                if topic == crate::io::mcap::InputTopic::Excitation {
+                    ne += 1;
+                } else {
+                    nr += 1;
+                }
+                if first.is_none() {
+                    first = Some(f.sample);
+                    t0 = f.t_ns;
+                }
+                last = Some(f.sample);
+                t1 = f.t_ns;
+            }
+            Err(e) => {
+                error = Some(e.to_string());
+                break;
+            }
+        }
+    }
+    let title = h
+        .setup_toml
+        .as_deref()
+        .and_then(|t| Setup::from_toml(t, "attached").ok())
+        .map(|s| s.title);
+    Ok(Inspection {
+        path: path.to_path_buf(),
+        encoding: format!("{:?}", h.encoding).to_lowercase(),
+        excitation_channels: h.excitation_channels.names.clone(),
+        response_channels: h.response_channels.names.clone(),
+        excitation_frames: ne,
+        response_frames: nr,
+        first_sample: first,
+        last_sample: last,
+        duration_s: (t1.saturating_sub(t0)) as f64 * 1e-9,
+        setup_attached: h.setup_toml.is_some(),
+        setup_title: title,
+        truth: h.truth.clone(),
+        facts: h.facts.clone(),
+        damage: stream.damage().map(str::to_string),
+        error,
+    })
+}
