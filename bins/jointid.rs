@@ -234,7 +234,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             })?;
             bar.finish_and_clear();
             if json {
-                println!("{}", serde_json::to_string_pretty(&outcome)?);
+                println!("{}", serde_json::to_string_pretty(&outcome.to_json())?);
             } else {
                 print_table(&outcome);
             }

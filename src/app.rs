@@ -156,21 +156,41 @@ pub struct ReplayRequest {
 }
 
 /// What `replay` found.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone)]
 pub struct ReplayOutcome {
     pub recording: PathBuf,
     pub samples: usize,
-    #[serde(flatten)]
     pub identification: Identification,
     /// Problems with the input that did not stop the replay (truncation, a bad sample after
     /// which the data were cut).
     pub input_warnings: Vec<String>,
     /// The input error that cut the data short, if any: the replay used what came before
     /// it, and the command exits with an error after writing its outputs.
-    #[serde(skip_serializing_if = "Option::is_none")]
     pub input_error: Option<String>,
-    #[serde(skip_serializing_if = "Option::is_none")]
     pub output: Option<PathBuf>,
+}
+
+impl ReplayOutcome {
+    /// The `--json` object: `parameters` (final, with `connection`, `basis`, `value`,
+    /// `std_error`, `ci95`, `truth` when known), `passes` (count), `converged`, and the
+    /// per-pass reports under `pass_reports`.
+    pub fn to_json(&self) -> serde_json::Value {
+        let id = &self.identification;
+        json!({
+            "recording": self.recording,
+            "samples": self.samples,
+            "estimator": id.estimator,
+            "parameters": id.final_parameters().unwrap_or(&[]),
+            "passes": id.passes.len(),
+            "converged": id.converged,
+            "stop_reason": id.stop_reason,
+            "failure": id.failure,
+            "input_warnings": self.input_warnings,
+            "input_error": self.input_error,
+            "output": self.output,
+            "pass_reports": id.passes,
+        })
+    }
 }
 
 /// Progress events for a progress bar.

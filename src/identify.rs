@@ -167,6 +167,31 @@ pub struct SampleRecord {
     pub delta_a: Vec<f64>,
 }
 
+/// Fewer independent measured quantities than connection DOFs cannot determine the residual
+/// forces, whatever the estimator: check rank(S) once, up front.
+pub fn check_observability(setup: &Setup, model: &Model, opts: &IdentifyOptions) -> Result<(), EstimateError> {
+    let with_terms = model.with_connection_terms(setup, &setup.initial_params());
+    let mut stepper = crate::integrate::Stepper::new(&with_terms, setup.dt_s, opts.substeps, setup.newmark)?;
+    let stations = crate::estimate::Stations::from_model(model);
+    let s = stations.pick_rows(&stepper.force_response(), model.n());
+    // Scale each channel by its largest sensitivity so units do not decide the rank.
+    let scaled = nalgebra::DMatrix::from_fn(s.nrows(), s.ncols(), |i, j| {
+        let m = s.row(i).amax();
+        if m > 0.0 { s[(i, j)] / m } else { 0.0 }
+    });
+    let (rank, condition, _) = crate::estimate::rank_and_condition(&scaled);
+    let q = setup.connections.len();
+    if rank < q {
+        return Err(EstimateError::RankDeficientSensitivity {
+            rank,
+            needed: q,
+            stations: stations.m(),
+            condition,
+        });
+    }
+    Ok(())
+}
+
 /// Build the estimator for one pass.
 pub fn build_estimator(
     setup: &Setup,
@@ -291,6 +316,7 @@ pub fn identify(
         return Err(IdentifyError::TooShort(data.len()));
     }
     let model = Model::assemble(setup)?;
+    check_observability(setup, &model, opts)?;
     let sigma: Vec<f64> = {
         let rms = data.response_rms();
         setup

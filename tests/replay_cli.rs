@@ -1,0 +1,316 @@
+//! End-to-end tests of `jointid simulate | replay | inspect`: the real binary on real
+//! recordings, asserting identified parameters against the truth.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+const BIN: &str = env!("CARGO_BIN_EXE_jointid");
+
+fn repo(p: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
+}
+
+fn run(args: &[&str]) -> Output {
+    let out = Command::new(BIN).args(args).output().expect("run jointid");
+    out
+}
+
+fn ok(args: &[&str]) -> String {
+    let out = run(args);
+    assert!(
+        out.status.success(),
+        "jointid {args:?} failed:\n{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+fn replay_json(args: &[&str]) -> serde_json::Value {
+    let mut a = vec!["replay"];
+    a.extend_from_slice(args);
+    a.push("--json");
+    serde_json::from_str(&ok(&a)).expect("replay --json prints JSON")
+}
+
+/// (basis, value, truth) of the final parameters.
+fn params(v: &serde_json::Value) -> Vec<(String, f64, f64)> {
+    v["parameters"]
+        .as_array()
+        .expect("parameters")
+        .iter()
+        .map(|p| {
+            (
+                p["basis"].as_str().unwrap_or_default().to_string(),
+                p["value"].as_f64().unwrap_or(f64::NAN),
+                p["truth"].as_f64().unwrap_or(f64::NAN),
+            )
+        })
+        .collect()
+}
+
+/// Relative error, against the largest true value for parameters whose truth is zero.
+fn check_recovery(v: &serde_json::Value, tol: f64, what: &str) {
+    let ps = params(v);
+    let scale = ps.iter().map(|p| p.2.abs()).fold(0.0, f64::max);
+    for (basis, value, truth) in &ps {
+        let err = if *truth != 0.0 {
+            (value - truth).abs() / truth.abs()
+        } else {
+            // A zero parameter is judged by the force it would add at a unit basis value,
+            // against the largest true parameter.
+            value.abs() / scale
+        };
+        assert!(err <= tol, "{what}: {basis} = {value} vs truth {truth} (error {err:.3e} > {tol:e})");
+    }
+}
+
+#[test]
+fn noise_free_own_discretisation_is_recovered_to_1e_6_for_both_paper_cases_and_all_inputs() {
+    let dir = tempfile::tempdir().unwrap();
+    for case in ["two-beam-spring", "two-beam-friction"] {
+        let setup = repo(&format!("recordings/{case}.toml"));
+        for scenario in ["sine", "random", "free"] {
+            let out = dir.path().join(format!("{case}-{scenario}.mcap"));
+            let (amp, steps) = if scenario == "free" { ("5e4", "600") } else { ("2e4", "600") };
+            let msg = ok(&[
+                "simulate",
+                setup.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+                "--scenario",
+                scenario,
+                "--steps",
+                steps,
+                "--amplitude",
+                amp,
+                "--substeps",
+                "1",
+                "--noise",
+                "none",
+            ]);
+            if case == "two-beam-friction" {
+                // The friction joint starts stuck at rest and the simulator says so.
+                assert!(!msg.contains("stuck 0.0 %"), "{msg}");
+            }
+            let v = replay_json(&[out.to_str().unwrap(), "--estimator", "paper"]);
+            assert_eq!(v["converged"], true, "{case} {scenario}: {v}");
+            check_recovery(&v, 1e-6, &format!("{case} {scenario}"));
+        }
+    }
+}
+
+#[test]
+fn replay_prints_table_and_writes_results_that_replay_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("t.mcap");
+    let res = dir.path().join("results.mcap");
+    let setup = repo("recordings/two-beam-friction.toml");
+    ok(&["simulate", setup.to_str().unwrap(), "--out", rec.to_str().unwrap(), "--steps", "300"]);
+    let table = ok(&["replay", rec.to_str().unwrap(), "--estimator", "paper", "--out", res.to_str().unwrap()]);
+    for needle in ["sign(u)", "std error", "truth", "error %", "error recursion ρ", "converged after"] {
+        assert!(table.contains(needle), "missing {needle:?} in\n{table}");
+    }
+    // The results file carries the inputs and the setup: it replays to the same answer.
+    let v = replay_json(&[res.to_str().unwrap(), "--estimator", "paper"]);
+    check_recovery(&v, 1e-6, "results file");
+    let info = ok(&["inspect", res.to_str().unwrap(), "--json"]);
+    let info: serde_json::Value = serde_json::from_str(&info).unwrap();
+    assert_eq!(info["excitation_frames"], 300);
+    assert_eq!(info["facts"]["estimator"], "paper");
+    // Output topics are plain JSON messages another program can read.
+    let bytes = std::fs::read(&res).unwrap();
+    let mut topics = std::collections::BTreeMap::<String, usize>::new();
+    for m in mcap::MessageStream::new(&bytes).unwrap() {
+        let m = m.unwrap();
+        *topics.entry(m.channel.topic.clone()).or_default() += 1;
+        if m.channel.topic == "/jointid/parameters" {
+            let j: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+            assert!(j["parameters"][0]["std_error"].is_number());
+        }
+    }
+    assert_eq!(topics["/jointid/residuals"], 299);
+    assert_eq!(topics["/jointid/states"], 299);
+    assert!(topics["/jointid/parameters"] >= 2);
+}
+
+/// A two-connection setup measured by a single channel: rank(S) = 1 < 2.
+#[test]
+fn too_few_stations_is_an_error_naming_the_rank() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(repo("recordings/two-beam-spring.toml")).unwrap();
+    // Keep only the first sensor and add a second connection at node 11.
+    let head = text.split("[[sensors]]").next().unwrap().to_string();
+    let rest = &text[text.find("[[connections]]").unwrap()..];
+    let setup = format!(
+        "{head}[[sensors]]\nname = \"node1.disp\"\ndof = {{ node = 1, dir = \"w\" }}\nquantity = \"displacement\"\n\n{rest}\n[[connections]]\nname = \"joint11\"\ndof = {{ node = 11, dir = \"w\" }}\nbasis = [\"u\"]\ntruth = [1.0e4]\n"
+    );
+    let sp = dir.path().join("s.toml");
+    std::fs::write(&sp, setup).unwrap();
+    let rec = dir.path().join("r.mcap");
+    ok(&["simulate", sp.to_str().unwrap(), "--out", rec.to_str().unwrap(), "--steps", "100"]);
+    for est in ["paper", "kalman"] {
+        let out = run(&["replay", rec.to_str().unwrap(), "--estimator", est]);
+        assert!(!out.status.success());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains("rank(S) = 1") && err.contains("2 connection DOFs"), "{est}: {err}");
+        assert_eq!(err.lines().count(), 1, "one-line cause: {err}");
+    }
+}
+
+/// Write a binary-encoded recording directly with the mcap crate (so it can hold what our
+/// own writer refuses to write).
+fn write_raw(path: &Path, setup: &str, names: &[&str], frames: &[(u64, u64, Vec<f64>, Vec<f64>)]) {
+    use std::collections::BTreeMap;
+    let mut w = mcap::Writer::new(std::io::BufWriter::new(std::fs::File::create(path).unwrap())).unwrap();
+    w.attach(&mcap::Attachment {
+        log_time: 0,
+        create_time: 0,
+        name: "setup.toml".into(),
+        media_type: "application/toml".into(),
+        data: std::borrow::Cow::Borrowed(setup.as_bytes()),
+    })
+    .unwrap();
+    let truth: BTreeMap<String, String> = [("sign(u)", "0"), ("u", "3e5"), ("const(100)", "0"), ("v", "0")]
+        .into_iter()
+        .map(|(k, v)| (format!("joint6.{k}"), v.to_string()))
+        .collect();
+    w.write_metadata(&mcap::records::Metadata { name: "jointid.truth".into(), metadata: truth }).unwrap();
+    let meta = |n: &[&str]| -> BTreeMap<String, String> {
+        [
+            ("channels".to_string(), n.join(",")),
+            ("units".to_string(), n.iter().map(|_| "u").collect::<Vec<_>>().join(",")),
+        ]
+        .into()
+    };
+    let ce = w
+        .add_channel(0, "/jointid/excitation", "jointid.frame.v1", &meta(&["node1.force"]))
+        .unwrap();
+    let cr = w.add_channel(0, "/jointid/response", "jointid.frame.v1", &meta(names)).unwrap();
+    let enc = |s: u64, t: u64, v: &[f64]| {
+        let mut b = Vec::new();
+        b.extend_from_slice(&s.to_le_bytes());
+        b.extend_from_slice(&t.to_le_bytes());
+        for x in v {
+            b.extend_from_slice(&x.to_le_bytes());
+        }
+        b
+    };
+    for (s, t, e, r) in frames {
+        for (ch, v) in [(ce, e), (cr, r)] {
+            let h = mcap::records::MessageHeader {
+                channel_id: ch,
+                sequence: *s as u32,
+                log_time: *t,
+                publish_time: *t,
+            };
+            w.write_to_known_channel(&h, &enc(*s, *t, v)).unwrap();
+        }
+    }
+    w.finish().unwrap();
+}
+
+fn good_frames(n: u64) -> (String, Vec<&'static str>, Vec<(u64, u64, Vec<f64>, Vec<f64>)>) {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("r.mcap");
+    let setup = repo("recordings/two-beam-spring.toml");
+    ok(&["simulate", setup.to_str().unwrap(), "--out", rec.to_str().unwrap(), "--steps", &n.to_string()]);
+    let bytes = std::fs::read(&rec).unwrap();
+    let mut exc = Vec::new();
+    let mut resp = Vec::new();
+    for m in mcap::MessageStream::new(&bytes).unwrap() {
+        let m = m.unwrap();
+        let j: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+        let v: Vec<f64> = j["values"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect();
+        let s = j["sample"].as_u64().unwrap();
+        let t = j["t_ns"].as_u64().unwrap();
+        if m.channel.topic == "/jointid/excitation" {
+            exc.push((s, t, v));
+        } else {
+            resp.push(v);
+        }
+    }
+    let names = vec![
+        "node1.disp", "node1.vel", "node3.disp", "node3.vel", "node5.disp", "node5.vel", "node7.disp",
+        "node7.vel", "node9.disp", "node9.vel", "node11.disp", "node11.vel",
+    ];
+    let frames = exc.into_iter().zip(resp).map(|((s, t, e), r)| (s, t, e, r)).collect();
+    (std::fs::read_to_string(setup).unwrap(), names, frames)
+}
+
+#[test]
+fn a_nan_is_named_by_sample_and_the_samples_before_it_are_identified_and_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let (setup, names, mut frames) = good_frames(400);
+    frames[250].3[4] = f64::NAN;
+    let rec = dir.path().join("nan.mcap");
+    write_raw(&rec, &setup, &names, &frames);
+    let res = dir.path().join("res.mcap");
+    let out = run(&["replay", rec.to_str().unwrap(), "--estimator", "paper", "--out", res.to_str().unwrap()]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("sample 250") && err.contains("250 samples before it"), "{err}");
+    // Nothing already computed is lost: the results hold the 250 good samples, identified.
+    let v = replay_json(&[res.to_str().unwrap(), "--estimator", "paper"]);
+    assert_eq!(v["samples"], 250);
+    check_recovery(&v, 1e-6, "prefix before the NaN");
+}
+
+#[test]
+fn time_backwards_and_wrong_channel_count_name_the_sample() {
+    let dir = tempfile::tempdir().unwrap();
+    let (setup, names, frames) = good_frames(100);
+    let mut back = frames.clone();
+    back[60].1 = back[59].1 - 1;
+    let rec = dir.path().join("back.mcap");
+    write_raw(&rec, &setup, &names, &back);
+    let out = run(&["replay", rec.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("60") && err.to_lowercase().contains("time"), "{err}");
+
+    let mut short = frames.clone();
+    short[70].3.pop();
+    let rec = dir.path().join("short.mcap");
+    write_raw(&rec, &setup, &names, &short);
+    let out = run(&["replay", rec.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("sample 70"), "{err}");
+
+    // A channel missing from the recording's channel list.
+    let rec = dir.path().join("missing.mcap");
+    let fewer: Vec<_> = frames.iter().map(|(s, t, e, r)| (*s, *t, e.clone(), r[..11].to_vec())).collect();
+    write_raw(&rec, &setup, &names[..11], &fewer);
+    let out = run(&["replay", rec.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("node11.vel"), "{err}");
+}
+
+#[test]
+fn a_truncated_recording_is_replayed_up_to_the_damage_with_a_warning() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("t.mcap");
+    let setup = repo("recordings/two-beam-friction.toml");
+    ok(&[
+        "simulate", setup.to_str().unwrap(), "--out", rec.to_str().unwrap(), "--steps", "3000", "--encoding", "binary",
+    ]);
+    let bytes = std::fs::read(&rec).unwrap();
+    let cut = dir.path().join("cut.mcap");
+    std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
+    let v = replay_json(&[cut.to_str().unwrap(), "--estimator", "paper"]);
+    let n = v["samples"].as_u64().unwrap();
+    assert!(n > 100 && n < 3000, "{n}");
+    assert!(v["input_warnings"][0].as_str().unwrap().contains("truncated"), "{v}");
+    check_recovery(&v, 1e-6, "truncated");
+}
+
+#[test]
+fn bad_setup_names_the_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(repo("recordings/two-beam-spring.toml")).unwrap();
+    let sp = dir.path().join("s.toml");
+    std::fs::write(&sp, text.replace("gamma = 0.5", "gama = 0.5")).unwrap();
+    let out = run(&["simulate", sp.to_str().unwrap(), "--out", dir.path().join("x.mcap").to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("gama"), "{err}");
+    assert!(!dir.path().join("x.mcap").exists());
+}
