@@ -56,6 +56,7 @@ fn bench_step(c: &mut Criterion) {
                         force_walk_std: 100.0,
                         model_error_std: 1e-3,
                         smooth: false,
+                        semi_implicit: true,
                     },
                     0,
                 )

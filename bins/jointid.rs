@@ -50,7 +50,9 @@ enum EstimatorArg {
 #[derive(Subcommand)]
 enum Command {
     /// Generate a synthetic test from a setup's true connection parameters.
-    #[command(after_help = "Example:\n  jointid simulate recordings/two-beam-friction.toml --out t.mcap --scenario sine --steps 36 --noise cov:0.1 --seed 3")]
+    #[command(
+        after_help = "Example:\n  jointid simulate recordings/two-beam-friction.toml --out t.mcap --scenario sine --steps 36 --noise cov:0.1 --seed 3"
+    )]
     Simulate {
         /// Setup file (TOML) with `truth` values on its connections.
         setup: PathBuf,
@@ -86,7 +88,9 @@ enum Command {
         encoding: EncodingArg,
     },
     /// Identify the connection parameters from a recording (Steps I–VI, several passes).
-    #[command(after_help = "Example:\n  jointid replay recordings/two-beam-friction.mcap --out results.mcap --json")]
+    #[command(
+        after_help = "Example:\n  jointid replay recordings/two-beam-friction.mcap --out results.mcap --json"
+    )]
     Replay {
         recording: PathBuf,
         /// Use this setup instead of the one attached to the recording.
@@ -239,7 +243,10 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 print_table(&outcome);
             }
             if let Some(e) = &outcome.input_error {
-                anyhow::bail!("{e} (the {} samples before it were identified and written)", outcome.samples);
+                anyhow::bail!(
+                    "{e} (the {} samples before it were identified and written)",
+                    outcome.samples
+                );
             }
             if let Some(f) = &outcome.identification.failure {
                 anyhow::bail!("{f}");
@@ -253,9 +260,24 @@ fn run(cli: Cli) -> Result<ExitCode> {
             } else {
                 println!("{}", i.path.display());
                 println!("  encoding     {}", i.encoding);
-                println!("  setup        {}", i.setup_title.as_deref().unwrap_or(if i.setup_attached { "(attached, invalid)" } else { "(none)" }));
-                println!("  excitation   {} frames: {}", i.excitation_frames, i.excitation_channels.join(", "));
-                println!("  response     {} frames: {}", i.response_frames, i.response_channels.join(", "));
+                println!(
+                    "  setup        {}",
+                    i.setup_title.as_deref().unwrap_or(if i.setup_attached {
+                        "(attached, invalid)"
+                    } else {
+                        "(none)"
+                    })
+                );
+                println!(
+                    "  excitation   {} frames: {}",
+                    i.excitation_frames,
+                    i.excitation_channels.join(", ")
+                );
+                println!(
+                    "  response     {} frames: {}",
+                    i.response_frames,
+                    i.response_channels.join(", ")
+                );
                 println!(
                     "  samples      {:?} .. {:?} ({:.6} s)",
                     i.first_sample, i.last_sample, i.duration_s
@@ -273,7 +295,11 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     println!("  ERROR        {e}");
                 }
             }
-            Ok(if i.error.is_some() { ExitCode::FAILURE } else { ExitCode::SUCCESS })
+            Ok(if i.error.is_some() {
+                ExitCode::FAILURE
+            } else {
+                ExitCode::SUCCESS
+            })
         }
     }
 }
@@ -283,7 +309,12 @@ fn print_table(o: &ReplayOutcome) {
     for w in &o.input_warnings {
         println!("warning: {w}");
     }
-    println!("{} — {} samples, estimator {}", o.recording.display(), o.samples, id.estimator);
+    println!(
+        "{} — {} samples, estimator {}",
+        o.recording.display(),
+        o.samples,
+        id.estimator
+    );
     for p in &id.passes {
         let d = &p.diagnostics;
         println!(
@@ -291,8 +322,13 @@ fn print_table(o: &ReplayOutcome) {
             p.pass,
             d.sensitivity_condition,
             d.sensitivity_gain,
-            d.error_spectral_radius.map_or("-".into(), |r| format!("{r:.4}")),
-            p.fit_condition.iter().map(|c| format!("{c:.2e}")).collect::<Vec<_>>().join("/"),
+            d.error_spectral_radius
+                .map_or("-".into(), |r| format!("{r:.4}")),
+            p.fit_condition
+                .iter()
+                .map(|c| format!("{c:.2e}"))
+                .collect::<Vec<_>>()
+                .join("/"),
             p.rows_excluded_stuck
         );
     }
@@ -307,7 +343,10 @@ fn print_table(o: &ReplayOutcome) {
         );
         for p in &last.parameters {
             let (truth, err) = match p.truth {
-                Some(t) if t != 0.0 => (format!("{t:.6e}"), format!("{:.3}", 100.0 * (p.value - t) / t.abs())),
+                Some(t) if t != 0.0 => (
+                    format!("{t:.6e}"),
+                    format!("{:.3}", 100.0 * (p.value - t) / t.abs()),
+                ),
                 Some(t) => (format!("{t:.6e}"), "-".into()),
                 None => ("-".into(), "-".into()),
             };

@@ -41,7 +41,11 @@ pub enum AlignError {
     )]
     WrongInterval { sample: u64, got_s: f64, dt_s: f64 },
     #[error("sample {sample}: time goes backwards ({prev_ns} ns, then {got_ns} ns)")]
-    NonMonotonicTime { sample: u64, prev_ns: u64, got_ns: u64 },
+    NonMonotonicTime {
+        sample: u64,
+        prev_ns: u64,
+        got_ns: u64,
+    },
 }
 
 /// Incremental aligner (the pipeline's stage and the batch path share it).
@@ -63,7 +67,12 @@ impl Aligner {
         }
     }
 
-    fn check_frame(&self, topic: &'static str, f: &Frame, expected: usize) -> Result<(), AlignError> {
+    fn check_frame(
+        &self,
+        topic: &'static str,
+        f: &Frame,
+        expected: usize,
+    ) -> Result<(), AlignError> {
         if f.values.len() != expected {
             return Err(AlignError::WrongChannelCount {
                 topic,
@@ -176,7 +185,11 @@ mod tests {
     use super::*;
 
     fn fr(sample: u64, t_ns: u64, values: Vec<f64>) -> Frame {
-        Frame { sample, t_ns, values }
+        Frame {
+            sample,
+            t_ns,
+            values,
+        }
     }
 
     #[test]
@@ -186,22 +199,45 @@ mod tests {
         r[3].values[1] = f64::NAN;
         let (d, err) = align(&e, &r, 1, 2, 1e-6);
         assert_eq!(d.len(), 3);
-        assert!(matches!(err, Some(AlignError::NonFinite { topic: "response", sample: 3, channel: 1, .. })));
-        assert!(err.unwrap().to_string().contains("response sample 3: channel 1"));
+        assert!(matches!(
+            err,
+            Some(AlignError::NonFinite {
+                topic: "response",
+                sample: 3,
+                channel: 1,
+                ..
+            })
+        ));
+        assert!(
+            err.unwrap()
+                .to_string()
+                .contains("response sample 3: channel 1")
+        );
     }
 
     #[test]
     fn gaps_wrong_interval_and_channel_count_are_named() {
         let e = vec![fr(0, 0, vec![1.0]), fr(2, 2000, vec![1.0])];
         let r = vec![fr(0, 0, vec![1.0]), fr(2, 2000, vec![1.0])];
-        assert_eq!(align(&e, &r, 1, 1, 1e-6).1, Some(AlignError::Gap { prev: 0, got: 2 }));
+        assert_eq!(
+            align(&e, &r, 1, 1, 1e-6).1,
+            Some(AlignError::Gap { prev: 0, got: 2 })
+        );
         let e = vec![fr(0, 0, vec![1.0]), fr(1, 1500, vec![1.0])];
         let r = e.clone();
-        assert!(matches!(align(&e, &r, 1, 1, 1e-6).1, Some(AlignError::WrongInterval { sample: 1, .. })));
+        assert!(matches!(
+            align(&e, &r, 1, 1, 1e-6).1,
+            Some(AlignError::WrongInterval { sample: 1, .. })
+        ));
         let r = vec![fr(0, 0, vec![1.0, 2.0])];
         assert!(matches!(
             align(&e[..1], &r, 1, 1, 1e-6).1,
-            Some(AlignError::WrongChannelCount { topic: "response", sample: 0, expected: 1, got: 2 })
+            Some(AlignError::WrongChannelCount {
+                topic: "response",
+                sample: 0,
+                expected: 1,
+                got: 2
+            })
         ));
     }
 }

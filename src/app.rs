@@ -12,8 +12,8 @@ use crate::align::{AlignError, align};
 use crate::estimate::StepOutput;
 use crate::identify::{Identification, IdentifyOptions, PassReport, identify};
 use crate::io::mcap::{
-    ChannelInfo, DIAGNOSTICS_TOPIC, McapIoError, PARAMETERS_TOPIC, RECORDING_METADATA, RESIDUALS_TOPIC,
-    RecordingWriter, STATES_TOPIC, TRUTH_METADATA, stream_frames,
+    ChannelInfo, DIAGNOSTICS_TOPIC, McapIoError, PARAMETERS_TOPIC, RECORDING_METADATA,
+    RESIDUALS_TOPIC, RecordingWriter, STATES_TOPIC, TRUTH_METADATA, stream_frames,
 };
 use crate::io::{Frame, FrameEncoding};
 use crate::setup::{EstimatorKind, Setup, SetupError};
@@ -57,11 +57,21 @@ fn channel_info(names: impl Iterator<Item = (String, String)>) -> ChannelInfo {
 }
 
 pub fn excitation_channels(setup: &Setup) -> ChannelInfo {
-    channel_info(setup.excitation.iter().map(|e| (e.name.clone(), e.unit.clone())))
+    channel_info(
+        setup
+            .excitation
+            .iter()
+            .map(|e| (e.name.clone(), e.unit.clone())),
+    )
 }
 
 pub fn response_channels(setup: &Setup) -> ChannelInfo {
-    channel_info(setup.sensors.iter().map(|s| (s.name.clone(), s.unit.clone())))
+    channel_info(
+        setup
+            .sensors
+            .iter()
+            .map(|s| (s.name.clone(), s.unit.clone())),
+    )
 }
 
 /// Summary of a simulated recording.
@@ -89,13 +99,23 @@ pub fn simulate_recording(
         setup_text = replace_dt(&setup_text, opts.dt_s);
     }
     w.attach_setup(&setup_text)?;
-    let truth: BTreeMap<String, f64> = setup.param_keys().into_iter().zip(sim.truth.iter().copied()).collect();
+    let truth: BTreeMap<String, f64> = setup
+        .param_keys()
+        .into_iter()
+        .zip(sim.truth.iter().copied())
+        .collect();
     w.write_metadata(
         TRUTH_METADATA,
-        &truth.iter().map(|(k, v)| (k.clone(), format!("{v:e}"))).collect(),
+        &truth
+            .iter()
+            .map(|(k, v)| (k.clone(), format!("{v:e}")))
+            .collect(),
     )?;
     let facts: BTreeMap<String, String> = [
-        ("generator", format!("jointid simulate {}", env!("CARGO_PKG_VERSION"))),
+        (
+            "generator",
+            format!("jointid simulate {}", env!("CARGO_PKG_VERSION")),
+        ),
         ("scenario", scenario_name.to_string()),
         ("steps", opts.steps.to_string()),
         ("dt_s", format!("{:e}", opts.dt_s)),
@@ -201,14 +221,20 @@ pub enum Progress<'a> {
 }
 
 /// Replay a recording through the identification (Steps I–VI) and write the results.
-pub fn replay(req: &ReplayRequest, progress: &mut dyn FnMut(Progress<'_>)) -> Result<ReplayOutcome, AppError> {
+pub fn replay(
+    req: &ReplayRequest,
+    progress: &mut dyn FnMut(Progress<'_>),
+) -> Result<ReplayOutcome, AppError> {
     let path = req.recording.clone();
     let mut stream = stream_frames(&path)?;
     let header = stream.header.clone();
     let setup = match &req.setup {
         Some(p) => Setup::from_file(p)?,
         None => {
-            let text = header.setup_toml.clone().ok_or(AppError::NoSetup { path: path.clone() })?;
+            let text = header
+                .setup_toml
+                .clone()
+                .ok_or(AppError::NoSetup { path: path.clone() })?;
             Setup::from_toml(&text, &format!("{} (attached setup.toml)", path.display()))?
         }
     };
@@ -245,7 +271,13 @@ pub fn replay(req: &ReplayRequest, progress: &mut dyn FnMut(Progress<'_>)) -> Re
     if let Some(d) = stream.damage() {
         input_warnings.push(format!("{}: {d}", path.display()));
     }
-    let (data, align_err) = align(&excitation, &response, exc.names.len(), resp.names.len(), setup.dt_s);
+    let (data, align_err) = align(
+        &excitation,
+        &response,
+        exc.names.len(),
+        resp.names.len(),
+        setup.dt_s,
+    );
     if let Some(e) = align_err {
         // A ragged end (one topic one frame longer) after truncation or an error is expected.
         let cut = input_error.is_some() || stream.damage().is_some();
@@ -271,11 +303,12 @@ pub fn replay(req: &ReplayRequest, progress: &mut dyn FnMut(Progress<'_>)) -> Re
         opts.estimator = k;
     }
     let keys = setup.param_keys();
-    let truth: Option<Vec<f64>> = if keys.iter().all(|k| header.truth.contains_key(k)) && !header.truth.is_empty() {
-        Some(keys.iter().map(|k| header.truth[k]).collect())
-    } else {
-        None
-    };
+    let truth: Option<Vec<f64>> =
+        if keys.iter().all(|k| header.truth.contains_key(k)) && !header.truth.is_empty() {
+            Some(keys.iter().map(|k| header.truth[k]).collect())
+        } else {
+            None
+        };
     progress(Progress::Start {
         samples: data.len(),
         passes: opts.passes,
@@ -297,7 +330,7 @@ pub fn replay(req: &ReplayRequest, progress: &mut dyn FnMut(Progress<'_>)) -> Re
                 current_pass = pass;
             }
             current.push(o.clone());
-            if current.len() % 4096 == 0 {
+            if current.len().is_multiple_of(4096) {
                 (progress.borrow_mut())(Progress::Samples {
                     pass,
                     done: current.len(),
@@ -392,11 +425,18 @@ fn write_results(
     if !header.truth.is_empty() {
         w.write_metadata(
             TRUTH_METADATA,
-            &header.truth.iter().map(|(k, v)| (k.clone(), format!("{v:e}"))).collect(),
+            &header
+                .truth
+                .iter()
+                .map(|(k, v)| (k.clone(), format!("{v:e}")))
+                .collect(),
         )?;
     }
     let mut facts = header.facts.clone();
-    facts.insert("replayed_from".into(), outcome.recording.display().to_string());
+    facts.insert(
+        "replayed_from".into(),
+        outcome.recording.display().to_string(),
+    );
     facts.insert("estimator".into(), outcome.identification.estimator.clone());
     w.write_metadata(RECORDING_METADATA, &facts)?;
     w.declare_inputs(&excitation_channels(setup), &response_channels(setup))?;
@@ -425,7 +465,11 @@ fn write_results(
     for (pass, o) in last_pass {
         // Samples are consecutive from `first`, so the time is found by offset.
         let idx = (o.sample - first) as usize;
-        let t = data.t_ns.get(idx).copied().unwrap_or_else(|| t_of(o.sample));
+        let t = data
+            .t_ns
+            .get(idx)
+            .copied()
+            .unwrap_or_else(|| t_of(o.sample));
         let v = |x: &nalgebra::DVector<f64>| x.iter().copied().collect::<Vec<f64>>();
         w.write_output(
             RESIDUALS_TOPIC,

@@ -20,7 +20,9 @@ use serde::Serialize;
 
 use crate::estimate::paper::{EstimatorInputs, PaperEstimator};
 use crate::estimate::refit::{Fit, RecursiveLeastSquares, RefitError};
-use crate::estimate::{ConnectionLaw, EstimateError, EstimatorDiagnostics, ResidualEstimator, StepOutput};
+use crate::estimate::{
+    ConnectionLaw, EstimateError, EstimatorDiagnostics, ResidualEstimator, StepOutput,
+};
 use crate::model::Model;
 use crate::setup::{Basis, EstimatorKind, Setup, Weighting};
 
@@ -84,8 +86,22 @@ pub struct IdentifyOptions {
     pub stick_band: f64,
     /// Substeps of the identification model per sample.
     pub substeps: usize,
-    /// Random-walk std of the residual force per sample for the Kalman estimator, N.
+    /// Random-walk std of the residual force per sample for the Kalman estimator, N. `None`:
+    /// tuned per pass by maximising the innovation likelihood (see `tune_kalman`).
     pub force_walk_std: Option<f64>,
+    /// Kalman tuning: also scale the estimated channel noise levels by a likelihood-tuned
+    /// factor.
+    pub tune_noise_scale: bool,
+    /// Kalman tuning: at most this many samples per candidate run (0: all).
+    pub tune_samples: usize,
+    /// Kalman: evaluate the non-linear connection force at the predicted state.
+    pub semi_implicit: bool,
+    /// Kalman: model-error force std at every DOF, N. `None`: tuned with σ_R when that is
+    /// tuned, else `MODEL_ERROR_RELATIVE ×` the force scale.
+    pub model_error_std: Option<f64>,
+    /// Kalman: also tune the model-error std by likelihood. Off by default: measured on the
+    /// two-beam problem it lets the state absorb the connection force (friction −67 %).
+    pub tune_model_error: bool,
 }
 
 impl IdentifyOptions {
@@ -101,6 +117,11 @@ impl IdentifyOptions {
             stick_band: 1e-6,
             substeps: setup.substeps,
             force_walk_std: e.force_walk_std,
+            tune_noise_scale: true,
+            tune_samples: 0,
+            semi_implicit: true,
+            model_error_std: None,
+            tune_model_error: false,
         }
     }
 }
@@ -169,9 +190,14 @@ pub struct SampleRecord {
 
 /// Fewer independent measured quantities than connection DOFs cannot determine the residual
 /// forces, whatever the estimator: check rank(S) once, up front.
-pub fn check_observability(setup: &Setup, model: &Model, opts: &IdentifyOptions) -> Result<(), EstimateError> {
+pub fn check_observability(
+    setup: &Setup,
+    model: &Model,
+    opts: &IdentifyOptions,
+) -> Result<(), EstimateError> {
     let with_terms = model.with_connection_terms(setup, &setup.initial_params());
-    let mut stepper = crate::integrate::Stepper::new(&with_terms, setup.dt_s, opts.substeps, setup.newmark)?;
+    let mut stepper =
+        crate::integrate::Stepper::new(&with_terms, setup.dt_s, opts.substeps, setup.newmark)?;
     let stations = crate::estimate::Stations::from_model(model);
     let s = stations.pick_rows(&stepper.force_response(), model.n());
     // Scale each channel by its largest sensitivity so units do not decide the rank.
@@ -214,11 +240,211 @@ pub fn build_estimator(
     };
     Ok(match opts.estimator {
         EstimatorKind::Paper => Box::new(PaperEstimator::new(inputs)?),
-        EstimatorKind::Kalman => Box::new(crate::estimate::kalman::KalmanEstimator::new(
-            inputs,
-            opts.force_walk_std,
-            samples,
-        )?),
+        EstimatorKind::Kalman => {
+            use crate::estimate::kalman::{
+                KalmanEstimator, KalmanOptions, MODEL_ERROR_RELATIVE, force_scale_of,
+            };
+            let scale = force_scale_of(inputs.model);
+            let ko = KalmanOptions {
+                force_walk_std: opts.force_walk_std.unwrap_or(scale),
+                model_error_std: opts.model_error_std.unwrap_or(MODEL_ERROR_RELATIVE * scale),
+                smooth: true,
+                semi_implicit: opts.semi_implicit,
+            };
+            Box::new(KalmanEstimator::with_options(inputs, ko, samples)?)
+        }
+    })
+}
+
+/// Per channel: the noise std (the setup's `noise_std`, else estimated from the data's
+/// high-order differences, see [`crate::estimate::tuning::channel_noise_std`]) and whether
+/// it was estimated.
+pub fn channel_noise(setup: &Setup, data: &TestData) -> (Vec<f64>, Vec<bool>) {
+    let mut col = Vec::with_capacity(data.len());
+    setup
+        .sensors
+        .iter()
+        .enumerate()
+        .map(|(k, s)| match s.noise_std {
+            Some(sd) => (sd, false),
+            None => {
+                col.clear();
+                col.extend(
+                    data.response
+                        .iter()
+                        .map(|y| y.get(k).copied().unwrap_or(0.0)),
+                );
+                (crate::estimate::tuning::channel_noise_std(&col), true)
+            }
+        })
+        .unzip()
+}
+
+/// Kalman tuning chosen for one pass.
+#[derive(Debug, Clone)]
+pub struct KalmanTuning {
+    pub force_walk_std: f64,
+    pub model_error_std: f64,
+    pub noise_scale: f64,
+    /// Channel noise levels after scaling.
+    pub sigma: Vec<f64>,
+    pub log_likelihood: f64,
+    pub runs: usize,
+}
+
+/// Innovation log-likelihood of a filter-only Kalman run over (a prefix of) the data.
+#[allow(clippy::too_many_arguments)]
+fn kalman_log_likelihood(
+    setup: &Setup,
+    with_terms: &Model,
+    params: &[f64],
+    opts: &IdentifyOptions,
+    sigma: &[f64],
+    data: &TestData,
+    walk: f64,
+    model_error: f64,
+) -> f64 {
+    use crate::estimate::kalman::{KalmanEstimator, KalmanOptions};
+    let inputs = EstimatorInputs {
+        model: with_terms,
+        law: ConnectionLaw::new(setup, params),
+        dt_s: setup.dt_s,
+        substeps: opts.substeps,
+        newmark: setup.newmark,
+        weighting: opts.weighting,
+        channel_sigma: sigma.to_vec(),
+        spectral_diagnostics: false,
+    };
+    let ko = KalmanOptions {
+        force_walk_std: walk,
+        model_error_std: model_error,
+        smooth: false,
+        semi_implicit: opts.semi_implicit,
+    };
+    let Ok(mut est) = KalmanEstimator::with_options(inputs, ko, 0) else {
+        return f64::NEG_INFINITY;
+    };
+    let len = if opts.tune_samples > 0 {
+        data.len().min(opts.tune_samples)
+    } else {
+        data.len()
+    };
+    let mut out = StepOutput::new(setup.connections.len());
+    est.start(data.samples[0], &data.excitation[0]);
+    for i in 1..len {
+        if est
+            .step(
+                data.samples[i],
+                &data.excitation[i],
+                &data.response[i],
+                &mut out,
+            )
+            .is_err()
+        {
+            return f64::NEG_INFINITY;
+        }
+    }
+    est.log_likelihood()
+}
+
+/// Choose the Kalman estimator's random-walk std σ_R (and, when `opts.tune_noise_scale`, a
+/// common scale of the estimated channel noise levels) by maximising the innovation
+/// likelihood of filter-only runs: σ_R over a log grid of 1e-6…1e2 × the force scale with
+/// golden-section refinement, then the noise scale over 1e-8…1e1, then σ_R again around
+/// the new optimum.
+pub fn tune_kalman(
+    setup: &Setup,
+    model: &Model,
+    params: &[f64],
+    opts: &IdentifyOptions,
+    sigma: &[f64],
+    estimated: &[bool],
+    data: &TestData,
+) -> Result<KalmanTuning, EstimateError> {
+    use crate::estimate::tuning::maximise_log;
+    let with_terms = model.with_connection_terms(setup, params);
+    let scale = crate::estimate::kalman::force_scale_of(&with_terms);
+    let mut model_error =
+        opts.model_error_std.unwrap_or(crate::estimate::kalman::MODEL_ERROR_RELATIVE * scale);
+    let mut runs = 0;
+    let scaled = |s: f64| -> Vec<f64> {
+        sigma
+            .iter()
+            .zip(estimated)
+            .map(|(x, e)| if *e { x * s } else { *x })
+            .collect()
+    };
+    let mut noise_scale = 1.0;
+    let sig = scaled(noise_scale);
+    let (mut walk, mut ll, n) = maximise_log(1e-6 * scale, 1e2 * scale, 9, 12, &mut |w| {
+        kalman_log_likelihood(setup, &with_terms, params, opts, &sig, data, w, model_error)
+    });
+    runs += n;
+    if opts.tune_noise_scale && estimated.iter().any(|&e| e) {
+        let (s, l, n) = maximise_log(1e-8, 1e1, 10, 10, &mut |s| {
+            kalman_log_likelihood(
+                setup,
+                &with_terms,
+                params,
+                opts,
+                &scaled(s),
+                data,
+                walk,
+                model_error,
+            )
+        });
+        runs += n;
+        if l > ll {
+            noise_scale = s;
+            ll = l;
+            let sig = scaled(noise_scale);
+            let (w, l, n) = maximise_log(walk / 30.0, walk * 30.0, 5, 10, &mut |w| {
+                kalman_log_likelihood(setup, &with_terms, params, opts, &sig, data, w, model_error)
+            });
+            runs += n;
+            if l > ll {
+                walk = w;
+                ll = l;
+            }
+        }
+    }
+    if opts.model_error_std.is_none() && opts.tune_model_error {
+        let sig = scaled(noise_scale);
+        let (e, l, n) = maximise_log(1e-9 * scale, 1e-1 * scale, 9, 8, &mut |e| {
+            kalman_log_likelihood(setup, &with_terms, params, opts, &sig, data, walk, e)
+        });
+        runs += n;
+        if l > ll {
+            model_error = e;
+            ll = l;
+            if opts.tune_noise_scale && estimated.iter().any(|&e| e) {
+                let (s, l, n) = maximise_log(noise_scale / 30.0, noise_scale * 30.0, 5, 8, &mut |s| {
+                    kalman_log_likelihood(setup, &with_terms, params, opts, &scaled(s), data, walk, model_error)
+                });
+                runs += n;
+                if l > ll {
+                    noise_scale = s;
+                    ll = l;
+                }
+            }
+            let sig = scaled(noise_scale);
+            let (w, l, n) = maximise_log(walk / 30.0, walk * 30.0, 5, 8, &mut |w| {
+                kalman_log_likelihood(setup, &with_terms, params, opts, &sig, data, w, model_error)
+            });
+            runs += n;
+            if l > ll {
+                walk = w;
+                ll = l;
+            }
+        }
+    }
+    Ok(KalmanTuning {
+        model_error_std: model_error,
+        force_walk_std: walk,
+        noise_scale,
+        sigma: scaled(noise_scale),
+        log_likelihood: ll,
+        runs,
     })
 }
 
@@ -245,11 +471,19 @@ impl ParameterAccumulator {
         let blocks: Vec<Vec<Basis>> = setup.connections.iter().map(|c| c.basis.clone()).collect();
         let maxp = blocks.iter().map(|b| b.len()).max().unwrap_or(0);
         Self {
-            fits: blocks.iter().map(|b| RecursiveLeastSquares::new(b.len(), forgetting)).collect(),
+            fits: blocks
+                .iter()
+                .map(|b| RecursiveLeastSquares::new(b.len(), forgetting))
+                .collect(),
             labels: setup
                 .connections
                 .iter()
-                .map(|c| c.basis.iter().map(|b| format!("{}.{}", c.name, b.label())).collect())
+                .map(|c| {
+                    c.basis
+                        .iter()
+                        .map(|b| format!("{}.{}", c.name, b.label()))
+                        .collect()
+                })
                 .collect(),
             peak_d: vec![0.0; blocks.len()],
             peak_v: vec![0.0; blocks.len()],
@@ -317,15 +551,7 @@ pub fn identify(
     }
     let model = Model::assemble(setup)?;
     check_observability(setup, &model, opts)?;
-    let sigma: Vec<f64> = {
-        let rms = data.response_rms();
-        setup
-            .sensors
-            .iter()
-            .zip(rms)
-            .map(|(s, r)| s.noise_std.unwrap_or(r))
-            .collect()
-    };
+    let (sigma, estimated) = channel_noise(setup, data);
     let mut params = setup.initial_params();
     let mut result = Identification {
         estimator: opts.estimator.to_string(),
@@ -336,7 +562,18 @@ pub fn identify(
     };
     let q = setup.connections.len();
     for pass in 1..=opts.passes {
-        let outcome = run_pass(setup, &model, &params, data, opts, &sigma, pass, truth, &mut |o| on_sample(pass, o));
+        let outcome = run_pass(
+            setup,
+            &model,
+            &params,
+            data,
+            opts,
+            &sigma,
+            &estimated,
+            pass,
+            truth,
+            &mut |o| on_sample(pass, o),
+        );
         let report = match outcome {
             Ok(r) => r,
             Err(e) => {
@@ -355,7 +592,12 @@ pub fn identify(
             let mut max_se: f64 = 0.0;
             let mut max_rel: f64 = 0.0;
             all_converged = true;
-            for ((a, b), (col, frms)) in report.parameters.iter().zip(&prev.parameters).zip(&report.force_scales) {
+            for ((a, b), (col, frms)) in report
+                .parameters
+                .iter()
+                .zip(&prev.parameters)
+                .zip(&report.force_scales)
+            {
                 let d = (a.value - b.value).abs();
                 let in_se = d / a.std_error.max(f64::MIN_POSITIVE);
                 let rel = d * col / frms.max(f64::MIN_POSITIVE);
@@ -385,7 +627,11 @@ pub fn identify(
         result.stop_reason = format!(
             "not converged: reached the limit of {} passes (last change {:.3} standard errors)",
             opts.passes,
-            result.passes.last().and_then(|p| p.max_change_std_errors).unwrap_or(f64::NAN)
+            result
+                .passes
+                .last()
+                .and_then(|p| p.max_change_std_errors)
+                .unwrap_or(f64::NAN)
         );
     }
     Ok(result)
@@ -399,17 +645,43 @@ fn run_pass(
     data: &TestData,
     opts: &IdentifyOptions,
     sigma: &[f64],
+    estimated: &[bool],
     pass: usize,
     truth: Option<&[f64]>,
     on_sample: &mut dyn FnMut(&StepOutput),
 ) -> Result<PassReport, IdentifyError> {
-    let mut est = build_estimator(setup, model, params, opts, sigma, data.len())?;
+    let mut tuning: Vec<(String, f64)> = Vec::new();
+    for ((sensor, s), est) in setup.sensors.iter().zip(sigma).zip(estimated) {
+        let kind = if *est { "estimated" } else { "given" };
+        tuning.push((format!("noise_std_{kind}[{}]", sensor.name), *s));
+    }
+    let mut est = if opts.estimator == EstimatorKind::Kalman && opts.force_walk_std.is_none() {
+        let t = tune_kalman(setup, model, params, opts, sigma, estimated, data)?;
+        tuning.extend([
+            ("tuned_force_walk_std_N".to_string(), t.force_walk_std),
+            ("tuned_noise_scale".to_string(), t.noise_scale),
+            ("tuned_model_error_std_N".to_string(), t.model_error_std),
+            ("tuned_log_likelihood".to_string(), t.log_likelihood),
+            ("tuning_runs".to_string(), t.runs as f64),
+        ]);
+        let mut o = opts.clone();
+        o.force_walk_std = Some(t.force_walk_std);
+        o.model_error_std = Some(t.model_error_std);
+        build_estimator(setup, model, params, &o, &t.sigma, data.len())?
+    } else {
+        build_estimator(setup, model, params, opts, sigma, data.len())?
+    };
     let q = setup.connections.len();
     let mut acc = ParameterAccumulator::new(setup, opts.stick_band, 1.0);
     let mut out = StepOutput::new(q);
     est.start(data.samples[0], &data.excitation[0]);
     for i in 1..data.len() {
-        if est.step(data.samples[i], &data.excitation[i], &data.response[i], &mut out)? {
+        if est.step(
+            data.samples[i],
+            &data.excitation[i],
+            &data.response[i],
+            &mut out,
+        )? {
             acc.push(&out);
             on_sample(&out);
         }
@@ -455,7 +727,11 @@ fn run_pass(
         fit_rms_residual: rms,
         rows_used: acc.rows(),
         rows_excluded_stuck: acc.excluded(),
-        diagnostics: est.diagnostics().clone(),
+        diagnostics: {
+            let mut d = est.diagnostics().clone();
+            d.tuning.extend(tuning);
+            d
+        },
         max_change_std_errors: None,
         max_change_force_relative: None,
         force_scales,

@@ -43,7 +43,11 @@ impl State {
     }
 
     pub fn is_finite(&self) -> bool {
-        self.u.iter().chain(self.v.iter()).chain(self.a.iter()).all(|x| x.is_finite())
+        self.u
+            .iter()
+            .chain(self.v.iter())
+            .chain(self.a.iter())
+            .all(|x| x.is_finite())
     }
 
     /// Value of one station channel.
@@ -79,10 +83,17 @@ pub struct Stepper {
 }
 
 impl Stepper {
-    pub fn new(model: &Model, dt_s: f64, substeps: usize, newmark: Newmark) -> Result<Self, IntegrateError> {
+    pub fn new(
+        model: &Model,
+        dt_s: f64,
+        substeps: usize,
+        newmark: Newmark,
+    ) -> Result<Self, IntegrateError> {
         let h = dt_s / substeps as f64;
         let meff = &model.M + &model.C * (newmark.gamma * h) + &model.K * (newmark.beta * h * h);
-        let meff_inv = meff.try_inverse().ok_or(IntegrateError::SingularEffectiveMass)?;
+        let meff_inv = meff
+            .try_inverse()
+            .ok_or(IntegrateError::SingularEffectiveMass)?;
         let n = model.n();
         Ok(Self {
             n,

@@ -60,6 +60,9 @@ pub struct Model {
     pub rayleigh: (f64, f64),
 }
 
+/// An element's DOFs (w1, θ1, w2, θ2; `None` when fixed), length, EI, mass/length, mass kind.
+type ElementDofs = ([Option<usize>; 4], f64, f64, f64, MassKind);
+
 /// Where a full DOF goes in assembly.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 enum FullDof {
@@ -117,8 +120,9 @@ impl Model {
                 }
             })
         };
-        let mut elements: Vec<([Option<usize>; 4], f64, f64, f64, MassKind)> = Vec::new();
-        let w_index = |full: &Vec<FullDof>, node: u32| full.iter().position(|d| *d == FullDof::W(node));
+        let mut elements: Vec<ElementDofs> = Vec::new();
+        let w_index =
+            |full: &Vec<FullDof>, node: u32| full.iter().position(|d| *d == FullDof::W(node));
         for (bi, (b, ids)) in m.beams.iter().zip(&beam_nodes).enumerate() {
             for e in 0..b.elements {
                 let (n1, n2) = (ids[e], ids[e + 1]);
@@ -154,48 +158,57 @@ impl Model {
         let find = |d: &DofRef| -> Option<usize> {
             match d.dir {
                 Dir::W => full.iter().position(|f| *f == FullDof::W(d.node)),
-                Dir::Rz => full.iter().position(|f| *f == FullDof::Rz(d.node, usize::MAX)),
+                Dir::Rz => full
+                    .iter()
+                    .position(|f| *f == FullDof::Rz(d.node, usize::MAX)),
             }
         };
         for ms in &m.masses {
-            if let Some(i) = find(&DofRef { node: ms.node, dir: Dir::W }) {
+            if let Some(i) = find(&DofRef {
+                node: ms.node,
+                dir: Dir::W,
+            }) {
                 M[(i, i)] += ms.mass;
             }
             if ms.inertia > 0.0
-                && let Some(i) = find(&DofRef { node: ms.node, dir: Dir::Rz })
+                && let Some(i) = find(&DofRef {
+                    node: ms.node,
+                    dir: Dir::Rz,
+                })
             {
                 M[(i, i)] += ms.inertia;
             }
         }
-        let add_link = |mat: &mut DMatrix<f64>, l: &LinkSpec, what: &str| -> Result<(), ModelError> {
-            let (a, b) = match (&l.dof, &l.between) {
-                (Some(d), _) => (*d, None),
-                (None, Some([a, b])) => (*a, Some(*b)),
-                (None, None) => unreachable!("validated in setup"),
-            };
-            let ia = find(&a);
-            let ib = b.map(|b| find(&b));
-            // A link to a fixed DOF acts as grounded on the other end.
-            let mut v: Vec<(usize, f64)> = Vec::new();
-            if let Some(i) = ia {
-                v.push((i, 1.0));
-            }
-            if let Some(Some(i)) = ib {
-                v.push((i, -1.0));
-            }
-            if ia.is_none() && matches!(ib, None | Some(None)) {
-                return Err(ModelError::NoSuchDof {
-                    what: what.to_string(),
-                    dof: a,
-                });
-            }
-            for &(i, si) in &v {
-                for &(j, sj) in &v {
-                    mat[(i, j)] += si * sj * l.value;
+        let add_link =
+            |mat: &mut DMatrix<f64>, l: &LinkSpec, what: &str| -> Result<(), ModelError> {
+                let (a, b) = match (&l.dof, &l.between) {
+                    (Some(d), _) => (*d, None),
+                    (None, Some([a, b])) => (*a, Some(*b)),
+                    (None, None) => unreachable!("validated in setup"),
+                };
+                let ia = find(&a);
+                let ib = b.map(|b| find(&b));
+                // A link to a fixed DOF acts as grounded on the other end.
+                let mut v: Vec<(usize, f64)> = Vec::new();
+                if let Some(i) = ia {
+                    v.push((i, 1.0));
                 }
-            }
-            Ok(())
-        };
+                if let Some(Some(i)) = ib {
+                    v.push((i, -1.0));
+                }
+                if ia.is_none() && matches!(ib, None | Some(None)) {
+                    return Err(ModelError::NoSuchDof {
+                        what: what.to_string(),
+                        dof: a,
+                    });
+                }
+                for &(i, si) in &v {
+                    for &(j, sj) in &v {
+                        mat[(i, j)] += si * sj * l.value;
+                    }
+                }
+                Ok(())
+            };
         for (i, s) in m.springs.iter().enumerate() {
             add_link(&mut K, s, &format!("model.springs[{i}]"))?;
         }
@@ -233,7 +246,10 @@ impl Model {
             Kc = (&Kc + Kc.transpose()) * 0.5;
         }
         let Mc = pick(&M, &retained, &retained);
-        let (alpha, beta) = m.rayleigh.as_ref().map_or((0.0, 0.0), |r| (r.alpha, r.beta));
+        let (alpha, beta) = m
+            .rayleigh
+            .as_ref()
+            .map_or((0.0, 0.0), |r| (r.alpha, r.beta));
         let Cc = pick(&Cd, &retained, &retained) + &Mc * alpha + &Kc * beta;
         let dofs: Vec<DofRef> = retained.iter().map(|&i| label(&full[i])).collect();
 
@@ -326,8 +342,14 @@ impl Model {
 
 fn label(f: &FullDof) -> DofRef {
     match *f {
-        FullDof::W(n) => DofRef { node: n, dir: Dir::W },
-        FullDof::Rz(n, _) => DofRef { node: n, dir: Dir::Rz },
+        FullDof::W(n) => DofRef {
+            node: n,
+            dir: Dir::W,
+        },
+        FullDof::Rz(n, _) => DofRef {
+            node: n,
+            dir: Dir::Rz,
+        },
     }
 }
 
@@ -356,9 +378,19 @@ fn beam_mass(l: f64, rho: f64, kind: MassKind) -> [[f64; 4]; 4] {
             let c = m / 420.0;
             [
                 [156.0 * c, 22.0 * l * c, 54.0 * c, -13.0 * l * c],
-                [22.0 * l * c, 4.0 * l * l * c, 13.0 * l * c, -3.0 * l * l * c],
+                [
+                    22.0 * l * c,
+                    4.0 * l * l * c,
+                    13.0 * l * c,
+                    -3.0 * l * l * c,
+                ],
                 [54.0 * c, 13.0 * l * c, 156.0 * c, -22.0 * l * c],
-                [-13.0 * l * c, -3.0 * l * l * c, -22.0 * l * c, 4.0 * l * l * c],
+                [
+                    -13.0 * l * c,
+                    -3.0 * l * l * c,
+                    -22.0 * l * c,
+                    4.0 * l * l * c,
+                ],
             ]
         }
     }
@@ -406,7 +438,10 @@ dt_s = 0.001
             let u = m.K.clone().lu().solve(&f).unwrap();
             let tip = m.Lp.column(0).iter().position(|&v| v == 1.0).unwrap();
             let exact = p * 2.0f64.powi(3) / (3.0 * 3.0e4);
-            assert!((u[tip] - exact).abs() < 1e-12 * exact.abs().max(1.0), "{mass}");
+            assert!(
+                (u[tip] - exact).abs() < 1e-12 * exact.abs().max(1.0),
+                "{mass}"
+            );
         }
     }
 
@@ -417,7 +452,10 @@ dt_s = 0.001
             * (3.0e4 / (1.5 * 2.0f64.powi(4))).sqrt();
         let s = Setup::from_toml(&cantilever(40, "consistent"), "t").unwrap();
         let f1 = Model::assemble(&s).unwrap().natural_frequencies_hz()[0];
-        assert!((f1 / exact - 1.0).abs() < 1e-5, "consistent {f1} vs {exact}");
+        assert!(
+            (f1 / exact - 1.0).abs() < 1e-5,
+            "consistent {f1} vs {exact}"
+        );
         let s = Setup::from_toml(&cantilever(40, "lumped"), "t").unwrap();
         let f1 = Model::assemble(&s).unwrap().natural_frequencies_hz()[0];
         assert!((f1 / exact - 1.0).abs() < 5e-3, "lumped {f1} vs {exact}");

@@ -394,10 +394,12 @@ impl Basis {
     pub fn parse(s: &str) -> Result<Self, String> {
         let t: String = s.chars().filter(|c| !c.is_whitespace()).collect();
         let arg = |prefix: &str| -> Option<Result<f64, String>> {
-            t.strip_prefix(prefix).and_then(|r| r.strip_suffix(')')).map(|x| {
-                x.parse::<f64>()
-                    .map_err(|_| format!("`{s}`: `{x}` is not a number"))
-            })
+            t.strip_prefix(prefix)
+                .and_then(|r| r.strip_suffix(')'))
+                .map(|x| {
+                    x.parse::<f64>()
+                        .map_err(|_| format!("`{s}`: `{x}` is not a number"))
+                })
         };
         Ok(match t.as_str() {
             "u" => Self::U,
@@ -574,7 +576,11 @@ impl Setup {
     pub fn param_keys(&self) -> Vec<String> {
         self.connections
             .iter()
-            .flat_map(|c| c.basis.iter().map(move |b| format!("{}.{}", c.name, b.label())))
+            .flat_map(|c| {
+                c.basis
+                    .iter()
+                    .map(move |b| format!("{}.{}", c.name, b.label()))
+            })
             .collect()
     }
 
@@ -619,11 +625,17 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
         let key = |f: &str| format!("model.beams[{i}].{f}");
         for (f, id) in [("from", b.from), ("to", b.to)] {
             if !declared.contains(&id) {
-                return Err(bad(key(f), format!("node {id} is not declared in model.nodes")));
+                return Err(bad(
+                    key(f),
+                    format!("node {id} is not declared in model.nodes"),
+                ));
             }
         }
         if b.from == b.to {
-            return Err(bad(key("to"), "a beam needs two different end nodes".into()));
+            return Err(bad(
+                key("to"),
+                "a beam needs two different end nodes".into(),
+            ));
         }
         if b.elements == 0 {
             return Err(bad(key("elements"), "must be at least 1".into()));
@@ -641,7 +653,10 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
         }
         for id in &b.interior_ids {
             if !node_ids.insert(*id) {
-                return Err(bad(key("interior_ids"), format!("node id {id} is already used")));
+                return Err(bad(
+                    key("interior_ids"),
+                    format!("node id {id} is already used"),
+                ));
             }
         }
         if !(b.ei.is_finite() && b.ei > 0.0) {
@@ -672,9 +687,11 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
     };
     for (i, ms) in m.masses.iter().enumerate() {
         check_node(format!("model.masses[{i}].node"), ms.node)?;
-        if !(ms.mass >= 0.0 && ms.inertia >= 0.0 && ms.mass.is_finite() && ms.inertia.is_finite())
-        {
-            return Err(bad(format!("model.masses[{i}]"), "mass and inertia must be ≥ 0".into()));
+        if !(ms.mass >= 0.0 && ms.inertia >= 0.0 && ms.mass.is_finite() && ms.inertia.is_finite()) {
+            return Err(bad(
+                format!("model.masses[{i}]"),
+                "mass and inertia must be ≥ 0".into(),
+            ));
         }
     }
     for (what, links) in [("springs", &m.springs), ("dashpots", &m.dashpots)] {
@@ -689,7 +706,10 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
                 _ => return Err(bad(key, "give exactly one of `dof` or `between`".into())),
             }
             if !(l.value.is_finite() && l.value >= 0.0) {
-                return Err(bad(format!("{key}.value"), format!("must be ≥ 0, got {}", l.value)));
+                return Err(bad(
+                    format!("{key}.value"),
+                    format!("must be ≥ 0, got {}", l.value),
+                ));
             }
         }
     }
@@ -702,7 +722,10 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
     if let Some(r) = &m.rayleigh
         && !(r.alpha >= 0.0 && r.beta >= 0.0 && r.alpha.is_finite() && r.beta.is_finite())
     {
-        return Err(bad("model.rayleigh".into(), "alpha and beta must be ≥ 0".into()));
+        return Err(bad(
+            "model.rayleigh".into(),
+            "alpha and beta must be ≥ 0".into(),
+        ));
     }
 
     let hinge_set: BTreeSet<u32> = m.hinges.iter().copied().collect();
@@ -724,7 +747,10 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
     for (i, e) in raw.excitation.iter().enumerate() {
         check_dof(format!("excitation[{i}].dof"), &e.dof)?;
         if !names.insert(e.name.clone()) {
-            return Err(bad(format!("excitation[{i}].name"), format!("`{}` used twice", e.name)));
+            return Err(bad(
+                format!("excitation[{i}].name"),
+                format!("`{}` used twice", e.name),
+            ));
         }
         excitation.push(Excitation {
             name: e.name.clone(),
@@ -733,18 +759,27 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
         });
     }
     if excitation.is_empty() {
-        return Err(bad("excitation".into(), "at least one excitation channel is needed".into()));
+        return Err(bad(
+            "excitation".into(),
+            "at least one excitation channel is needed".into(),
+        ));
     }
     let mut sensors = Vec::new();
     for (i, s) in raw.sensors.iter().enumerate() {
         check_dof(format!("sensors[{i}].dof"), &s.dof)?;
         if !names.insert(s.name.clone()) {
-            return Err(bad(format!("sensors[{i}].name"), format!("`{}` used twice", s.name)));
+            return Err(bad(
+                format!("sensors[{i}].name"),
+                format!("`{}` used twice", s.name),
+            ));
         }
         if let Some(sd) = s.noise_std
             && !(sd.is_finite() && sd > 0.0)
         {
-            return Err(bad(format!("sensors[{i}].noise_std"), format!("must be > 0, got {sd}")));
+            return Err(bad(
+                format!("sensors[{i}].noise_std"),
+                format!("must be > 0, got {sd}"),
+            ));
         }
         let unit = s.unit.clone().unwrap_or_else(|| {
             match s.quantity {
@@ -763,7 +798,10 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
         });
     }
     if sensors.is_empty() {
-        return Err(bad("sensors".into(), "at least one sensor channel is needed".into()));
+        return Err(bad(
+            "sensors".into(),
+            "at least one sensor channel is needed".into(),
+        ));
     }
     let mut connections = Vec::new();
     for (i, c) in raw.connections.iter().enumerate() {
@@ -789,11 +827,15 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
             }
         };
         if c.basis.is_empty() {
-            return Err(bad(key("basis"), "at least one basis function is needed".into()));
+            return Err(bad(
+                key("basis"),
+                "at least one basis function is needed".into(),
+            ));
         }
         let mut basis = Vec::new();
         for (j, s) in c.basis.iter().enumerate() {
-            basis.push(Basis::parse(s).map_err(|e| bad(format!("connections[{i}].basis[{j}]"), e))?);
+            basis
+                .push(Basis::parse(s).map_err(|e| bad(format!("connections[{i}].basis[{j}]"), e))?);
         }
         let nb = basis.len();
         let initial = if c.initial.is_empty() {
@@ -804,7 +846,11 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
         if initial.len() != nb {
             return Err(bad(
                 key("initial"),
-                format!("{} basis functions but {} initial values", nb, initial.len()),
+                format!(
+                    "{} basis functions but {} initial values",
+                    nb,
+                    initial.len()
+                ),
             ));
         }
         let truth = if c.truth.is_empty() {
@@ -819,7 +865,10 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
         };
         for (j, v) in initial.iter().chain(truth.iter().flatten()).enumerate() {
             if !v.is_finite() {
-                return Err(bad(format!("connections[{i}]"), format!("value {j} is not finite")));
+                return Err(bad(
+                    format!("connections[{i}]"),
+                    format!("value {j} is not finite"),
+                ));
             }
         }
         if !names.insert(c.name.clone()) {
@@ -835,13 +884,22 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
         });
     }
     if connections.is_empty() {
-        return Err(bad("connections".into(), "at least one connection is needed".into()));
+        return Err(bad(
+            "connections".into(),
+            "at least one connection is needed".into(),
+        ));
     }
     let it = &raw.integrator;
     if !(it.dt_s.is_finite() && it.dt_s > 0.0) {
-        return Err(bad("integrator.dt_s".into(), format!("must be > 0, got {}", it.dt_s)));
+        return Err(bad(
+            "integrator.dt_s".into(),
+            format!("must be > 0, got {}", it.dt_s),
+        ));
     }
-    if !(it.gamma >= 0.5 && 2.0 * it.beta >= it.gamma && it.beta.is_finite() && it.gamma.is_finite())
+    if !(it.gamma >= 0.5
+        && 2.0 * it.beta >= it.gamma
+        && it.beta.is_finite()
+        && it.gamma.is_finite())
     {
         return Err(bad(
             "integrator".into(),
@@ -864,7 +922,10 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
     if let Some(q) = est.force_walk_std
         && !(q.is_finite() && q > 0.0)
     {
-        return Err(bad("estimator.force_walk_std".into(), format!("must be > 0, got {q}")));
+        return Err(bad(
+            "estimator.force_walk_std".into(),
+            format!("must be > 0, got {q}"),
+        ));
     }
     Ok(Setup {
         origin: origin.to_string(),
@@ -928,7 +989,10 @@ dt_s = 0.01
         let e = Setup::from_toml(&TINY.replace("\"v\"]", "\"w\"]"), "t")
             .unwrap_err()
             .to_string();
-        assert!(e.contains("connections[0].basis[1]") && e.contains("`w`"), "{e}");
+        assert!(
+            e.contains("connections[0].basis[1]") && e.contains("`w`"),
+            "{e}"
+        );
         let e = Setup::from_toml(&TINY.replace("dt_s = 0.01", "dt_s = 0.01\nbeta = 0.1"), "t")
             .unwrap_err()
             .to_string();

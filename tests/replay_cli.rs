@@ -11,8 +11,7 @@ fn repo(p: &str) -> PathBuf {
 }
 
 fn run(args: &[&str]) -> Output {
-    let out = Command::new(BIN).args(args).output().expect("run jointid");
-    out
+    Command::new(BIN).args(args).output().expect("run jointid")
 }
 
 fn ok(args: &[&str]) -> String {
@@ -61,7 +60,10 @@ fn check_recovery(v: &serde_json::Value, tol: f64, what: &str) {
             // against the largest true parameter.
             value.abs() / scale
         };
-        assert!(err <= tol, "{what}: {basis} = {value} vs truth {truth} (error {err:.3e} > {tol:e})");
+        assert!(
+            err <= tol,
+            "{what}: {basis} = {value} vs truth {truth} (error {err:.3e} > {tol:e})"
+        );
     }
 }
 
@@ -72,7 +74,11 @@ fn noise_free_own_discretisation_is_recovered_to_1e_6_for_both_paper_cases_and_a
         let setup = repo(&format!("recordings/{case}.toml"));
         for scenario in ["sine", "random", "free"] {
             let out = dir.path().join(format!("{case}-{scenario}.mcap"));
-            let (amp, steps) = if scenario == "free" { ("5e4", "600") } else { ("2e4", "600") };
+            let (amp, steps) = if scenario == "free" {
+                ("5e4", "600")
+            } else {
+                ("2e4", "600")
+            };
             let msg = ok(&[
                 "simulate",
                 setup.to_str().unwrap(),
@@ -106,9 +112,30 @@ fn replay_prints_table_and_writes_results_that_replay_again() {
     let rec = dir.path().join("t.mcap");
     let res = dir.path().join("results.mcap");
     let setup = repo("recordings/two-beam-friction.toml");
-    ok(&["simulate", setup.to_str().unwrap(), "--out", rec.to_str().unwrap(), "--steps", "300"]);
-    let table = ok(&["replay", rec.to_str().unwrap(), "--estimator", "paper", "--out", res.to_str().unwrap()]);
-    for needle in ["sign(u)", "std error", "truth", "error %", "error recursion ρ", "converged after"] {
+    ok(&[
+        "simulate",
+        setup.to_str().unwrap(),
+        "--out",
+        rec.to_str().unwrap(),
+        "--steps",
+        "300",
+    ]);
+    let table = ok(&[
+        "replay",
+        rec.to_str().unwrap(),
+        "--estimator",
+        "paper",
+        "--out",
+        res.to_str().unwrap(),
+    ]);
+    for needle in [
+        "sign(u)",
+        "std error",
+        "truth",
+        "error %",
+        "error recursion ρ",
+        "converged after",
+    ] {
         assert!(table.contains(needle), "missing {needle:?} in\n{table}");
     }
     // The results file carries the inputs and the setup: it replays to the same answer.
@@ -148,21 +175,37 @@ fn too_few_stations_is_an_error_naming_the_rank() {
     let sp = dir.path().join("s.toml");
     std::fs::write(&sp, setup).unwrap();
     let rec = dir.path().join("r.mcap");
-    ok(&["simulate", sp.to_str().unwrap(), "--out", rec.to_str().unwrap(), "--steps", "100"]);
+    ok(&[
+        "simulate",
+        sp.to_str().unwrap(),
+        "--out",
+        rec.to_str().unwrap(),
+        "--steps",
+        "100",
+    ]);
     for est in ["paper", "kalman"] {
         let out = run(&["replay", rec.to_str().unwrap(), "--estimator", est]);
         assert!(!out.status.success());
         let err = String::from_utf8_lossy(&out.stderr);
-        assert!(err.contains("rank(S) = 1") && err.contains("2 connection DOFs"), "{est}: {err}");
+        assert!(
+            err.contains("rank(S) = 1") && err.contains("2 connection DOFs"),
+            "{est}: {err}"
+        );
         assert_eq!(err.lines().count(), 1, "one-line cause: {err}");
     }
 }
 
+/// (sample, t_ns, excitation, response) of one raw frame pair.
+type RawFrame = (u64, u64, Vec<f64>, Vec<f64>);
+
 /// Write a binary-encoded recording directly with the mcap crate (so it can hold what our
 /// own writer refuses to write).
-fn write_raw(path: &Path, setup: &str, names: &[&str], frames: &[(u64, u64, Vec<f64>, Vec<f64>)]) {
+fn write_raw(path: &Path, setup: &str, names: &[&str], frames: &[RawFrame]) {
     use std::collections::BTreeMap;
-    let mut w = mcap::Writer::new(std::io::BufWriter::new(std::fs::File::create(path).unwrap())).unwrap();
+    let mut w = mcap::Writer::new(std::io::BufWriter::new(
+        std::fs::File::create(path).unwrap(),
+    ))
+    .unwrap();
     w.attach(&mcap::Attachment {
         log_time: 0,
         create_time: 0,
@@ -171,22 +214,41 @@ fn write_raw(path: &Path, setup: &str, names: &[&str], frames: &[(u64, u64, Vec<
         data: std::borrow::Cow::Borrowed(setup.as_bytes()),
     })
     .unwrap();
-    let truth: BTreeMap<String, String> = [("sign(u)", "0"), ("u", "3e5"), ("const(100)", "0"), ("v", "0")]
-        .into_iter()
-        .map(|(k, v)| (format!("joint6.{k}"), v.to_string()))
-        .collect();
-    w.write_metadata(&mcap::records::Metadata { name: "jointid.truth".into(), metadata: truth }).unwrap();
+    let truth: BTreeMap<String, String> = [
+        ("sign(u)", "0"),
+        ("u", "3e5"),
+        ("const(100)", "0"),
+        ("v", "0"),
+    ]
+    .into_iter()
+    .map(|(k, v)| (format!("joint6.{k}"), v.to_string()))
+    .collect();
+    w.write_metadata(&mcap::records::Metadata {
+        name: "jointid.truth".into(),
+        metadata: truth,
+    })
+    .unwrap();
     let meta = |n: &[&str]| -> BTreeMap<String, String> {
         [
             ("channels".to_string(), n.join(",")),
-            ("units".to_string(), n.iter().map(|_| "u").collect::<Vec<_>>().join(",")),
+            (
+                "units".to_string(),
+                n.iter().map(|_| "u").collect::<Vec<_>>().join(","),
+            ),
         ]
         .into()
     };
     let ce = w
-        .add_channel(0, "/jointid/excitation", "jointid.frame.v1", &meta(&["node1.force"]))
+        .add_channel(
+            0,
+            "/jointid/excitation",
+            "jointid.frame.v1",
+            &meta(&["node1.force"]),
+        )
         .unwrap();
-    let cr = w.add_channel(0, "/jointid/response", "jointid.frame.v1", &meta(names)).unwrap();
+    let cr = w
+        .add_channel(0, "/jointid/response", "jointid.frame.v1", &meta(names))
+        .unwrap();
     let enc = |s: u64, t: u64, v: &[f64]| {
         let mut b = Vec::new();
         b.extend_from_slice(&s.to_le_bytes());
@@ -210,18 +272,30 @@ fn write_raw(path: &Path, setup: &str, names: &[&str], frames: &[(u64, u64, Vec<
     w.finish().unwrap();
 }
 
-fn good_frames(n: u64) -> (String, Vec<&'static str>, Vec<(u64, u64, Vec<f64>, Vec<f64>)>) {
+fn good_frames(n: u64) -> (String, Vec<&'static str>, Vec<RawFrame>) {
     let dir = tempfile::tempdir().unwrap();
     let rec = dir.path().join("r.mcap");
     let setup = repo("recordings/two-beam-spring.toml");
-    ok(&["simulate", setup.to_str().unwrap(), "--out", rec.to_str().unwrap(), "--steps", &n.to_string()]);
+    ok(&[
+        "simulate",
+        setup.to_str().unwrap(),
+        "--out",
+        rec.to_str().unwrap(),
+        "--steps",
+        &n.to_string(),
+    ]);
     let bytes = std::fs::read(&rec).unwrap();
     let mut exc = Vec::new();
     let mut resp = Vec::new();
     for m in mcap::MessageStream::new(&bytes).unwrap() {
         let m = m.unwrap();
         let j: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
-        let v: Vec<f64> = j["values"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect();
+        let v: Vec<f64> = j["values"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect();
         let s = j["sample"].as_u64().unwrap();
         let t = j["t_ns"].as_u64().unwrap();
         if m.channel.topic == "/jointid/excitation" {
@@ -231,10 +305,24 @@ fn good_frames(n: u64) -> (String, Vec<&'static str>, Vec<(u64, u64, Vec<f64>, V
         }
     }
     let names = vec![
-        "node1.disp", "node1.vel", "node3.disp", "node3.vel", "node5.disp", "node5.vel", "node7.disp",
-        "node7.vel", "node9.disp", "node9.vel", "node11.disp", "node11.vel",
+        "node1.disp",
+        "node1.vel",
+        "node3.disp",
+        "node3.vel",
+        "node5.disp",
+        "node5.vel",
+        "node7.disp",
+        "node7.vel",
+        "node9.disp",
+        "node9.vel",
+        "node11.disp",
+        "node11.vel",
     ];
-    let frames = exc.into_iter().zip(resp).map(|((s, t, e), r)| (s, t, e, r)).collect();
+    let frames = exc
+        .into_iter()
+        .zip(resp)
+        .map(|((s, t, e), r)| (s, t, e, r))
+        .collect();
     (std::fs::read_to_string(setup).unwrap(), names, frames)
 }
 
@@ -246,10 +334,20 @@ fn a_nan_is_named_by_sample_and_the_samples_before_it_are_identified_and_written
     let rec = dir.path().join("nan.mcap");
     write_raw(&rec, &setup, &names, &frames);
     let res = dir.path().join("res.mcap");
-    let out = run(&["replay", rec.to_str().unwrap(), "--estimator", "paper", "--out", res.to_str().unwrap()]);
+    let out = run(&[
+        "replay",
+        rec.to_str().unwrap(),
+        "--estimator",
+        "paper",
+        "--out",
+        res.to_str().unwrap(),
+    ]);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("sample 250") && err.contains("250 samples before it"), "{err}");
+    assert!(
+        err.contains("sample 250") && err.contains("250 samples before it"),
+        "{err}"
+    );
     // Nothing already computed is lost: the results hold the 250 good samples, identified.
     let v = replay_json(&[res.to_str().unwrap(), "--estimator", "paper"]);
     assert_eq!(v["samples"], 250);
@@ -266,7 +364,10 @@ fn time_backwards_and_wrong_channel_count_name_the_sample() {
     write_raw(&rec, &setup, &names, &back);
     let out = run(&["replay", rec.to_str().unwrap()]);
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && err.contains("60") && err.to_lowercase().contains("time"), "{err}");
+    assert!(
+        !out.status.success() && err.contains("60") && err.to_lowercase().contains("time"),
+        "{err}"
+    );
 
     let mut short = frames.clone();
     short[70].3.pop();
@@ -278,7 +379,10 @@ fn time_backwards_and_wrong_channel_count_name_the_sample() {
 
     // A channel missing from the recording's channel list.
     let rec = dir.path().join("missing.mcap");
-    let fewer: Vec<_> = frames.iter().map(|(s, t, e, r)| (*s, *t, e.clone(), r[..11].to_vec())).collect();
+    let fewer: Vec<_> = frames
+        .iter()
+        .map(|(s, t, e, r)| (*s, *t, e.clone(), r[..11].to_vec()))
+        .collect();
     write_raw(&rec, &setup, &names[..11], &fewer);
     let out = run(&["replay", rec.to_str().unwrap()]);
     let err = String::from_utf8_lossy(&out.stderr);
@@ -291,7 +395,14 @@ fn a_truncated_recording_is_replayed_up_to_the_damage_with_a_warning() {
     let rec = dir.path().join("t.mcap");
     let setup = repo("recordings/two-beam-friction.toml");
     ok(&[
-        "simulate", setup.to_str().unwrap(), "--out", rec.to_str().unwrap(), "--steps", "3000", "--encoding", "binary",
+        "simulate",
+        setup.to_str().unwrap(),
+        "--out",
+        rec.to_str().unwrap(),
+        "--steps",
+        "3000",
+        "--encoding",
+        "binary",
     ]);
     let bytes = std::fs::read(&rec).unwrap();
     let cut = dir.path().join("cut.mcap");
@@ -299,7 +410,13 @@ fn a_truncated_recording_is_replayed_up_to_the_damage_with_a_warning() {
     let v = replay_json(&[cut.to_str().unwrap(), "--estimator", "paper"]);
     let n = v["samples"].as_u64().unwrap();
     assert!(n > 100 && n < 3000, "{n}");
-    assert!(v["input_warnings"][0].as_str().unwrap().contains("truncated"), "{v}");
+    assert!(
+        v["input_warnings"][0]
+            .as_str()
+            .unwrap()
+            .contains("truncated"),
+        "{v}"
+    );
     check_recovery(&v, 1e-6, "truncated");
 }
 
@@ -309,7 +426,12 @@ fn bad_setup_names_the_key() {
     let text = std::fs::read_to_string(repo("recordings/two-beam-spring.toml")).unwrap();
     let sp = dir.path().join("s.toml");
     std::fs::write(&sp, text.replace("gamma = 0.5", "gama = 0.5")).unwrap();
-    let out = run(&["simulate", sp.to_str().unwrap(), "--out", dir.path().join("x.mcap").to_str().unwrap()]);
+    let out = run(&[
+        "simulate",
+        sp.to_str().unwrap(),
+        "--out",
+        dir.path().join("x.mcap").to_str().unwrap(),
+    ]);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && err.contains("gama"), "{err}");
     assert!(!dir.path().join("x.mcap").exists());

@@ -12,10 +12,10 @@
 
 #![allow(non_snake_case)]
 
-
 pub mod kalman;
 pub mod paper;
 pub mod refit;
+pub mod tuning;
 
 use nalgebra::{DMatrix, DVector};
 
@@ -132,7 +132,13 @@ impl ConnectionLaw {
     }
 
     /// Force of the non-linear terms (everything not in K, C, M).
-    pub fn explicit_force(&self, d: &DVector<f64>, dv: &DVector<f64>, da: &DVector<f64>, out: &mut DVector<f64>) {
+    pub fn explicit_force(
+        &self,
+        d: &DVector<f64>,
+        dv: &DVector<f64>,
+        da: &DVector<f64>,
+        out: &mut DVector<f64>,
+    ) {
         for (c, (basis, off)) in self.blocks.iter().enumerate() {
             out[c] = basis
                 .iter()
@@ -144,7 +150,13 @@ impl ConnectionLaw {
     }
 
     /// Force of the linear terms (the part the model's matrices carry).
-    pub fn linear_force(&self, d: &DVector<f64>, dv: &DVector<f64>, da: &DVector<f64>, out: &mut DVector<f64>) {
+    pub fn linear_force(
+        &self,
+        d: &DVector<f64>,
+        dv: &DVector<f64>,
+        da: &DVector<f64>,
+        out: &mut DVector<f64>,
+    ) {
         for (c, (basis, off)) in self.blocks.iter().enumerate() {
             out[c] = basis
                 .iter()
@@ -197,7 +209,15 @@ pub fn rank_and_condition(a: &DMatrix<f64>) -> (usize, f64, f64) {
     let smin = sv.min();
     let tol = smax * (a.nrows().max(a.ncols()) as f64) * f64::EPSILON * 16.0;
     let rank = sv.iter().filter(|&&s| s > tol).count();
-    (rank, if smin > 0.0 { smax / smin } else { f64::INFINITY }, smax)
+    (
+        rank,
+        if smin > 0.0 {
+            smax / smin
+        } else {
+            f64::INFINITY
+        },
+        smax,
+    )
 }
 
 /// Spectral radius of a square matrix.

@@ -92,14 +92,14 @@ impl PaperEstimator {
         }
         // G = (SᵀWS)⁻¹SᵀW through the SVD of W^½S (stable even when S is badly scaled).
         let svd = ws.clone().svd(true, true);
-        let pinv = svd
-            .pseudo_inverse(0.0)
-            .map_err(|_| EstimateError::RankDeficientSensitivity {
-                rank,
-                needed: q,
-                stations: m,
-                condition,
-            })?;
+        let pinv =
+            svd.pseudo_inverse(0.0)
+                .map_err(|_| EstimateError::RankDeficientSensitivity {
+                    rank,
+                    needed: q,
+                    stations: m,
+                    condition,
+                })?;
         let gain = pinv * &sqrt_w;
         let (_, _, s_gain) = rank_and_condition(&S);
         let _ = gain_max;
@@ -113,7 +113,11 @@ impl PaperEstimator {
         if inp.spectral_diagnostics {
             let phi = stepper.transition();
             let h = DMatrix::from_fn(m, 3 * n, |i, j| {
-                if stations.state_index(i, n) == j { 1.0 } else { 0.0 }
+                if stations.state_index(i, n) == j {
+                    1.0
+                } else {
+                    0.0
+                }
             });
             let e = (DMatrix::identity(3 * n, 3 * n) - &gamma * &gain * h) * phi;
             let rho = spectral_radius(&e);
@@ -163,7 +167,8 @@ impl ResidualEstimator for PaperEstimator {
         let q = self.law.q();
         let z = DVector::zeros(q);
         self.law.explicit_force(&z, &z, &z, &mut self.g);
-        self.stepper.initial_acceleration(&mut self.state, excitation, &z);
+        self.stepper
+            .initial_acceleration(&mut self.state, excitation, &z);
         self.p_prev.copy_from_slice(excitation);
     }
 
@@ -178,7 +183,8 @@ impl ResidualEstimator for PaperEstimator {
         self.pred.u.copy_from(&self.state.u);
         self.pred.v.copy_from(&self.state.v);
         self.pred.a.copy_from(&self.state.a);
-        self.stepper.advance(&mut self.pred, &self.p_prev, excitation, &self.g);
+        self.stepper
+            .advance(&mut self.pred, &self.p_prev, excitation, &self.g);
         // Step III: R = G (y_m − y_p).
         for (k, &(dof, q)) in self.stations.channels.iter().enumerate() {
             self.innov[k] = measured[k] - self.pred.channel(dof, q);
@@ -199,13 +205,15 @@ impl ResidualEstimator for PaperEstimator {
         out.delta.gemv_tr(1.0, lc, &self.state.u, 0.0);
         out.delta_v.gemv_tr(1.0, lc, &self.state.v, 0.0);
         out.delta_a.gemv_tr(1.0, lc, &self.state.a, 0.0);
-        self.law.linear_force(&out.delta, &out.delta_v, &out.delta_a, &mut self.lin);
+        self.law
+            .linear_force(&out.delta, &out.delta_v, &out.delta_a, &mut self.lin);
         out.residual.copy_from(&self.r);
         out.force.copy_from(&self.lin);
         out.force += &self.g;
         out.force += &self.r;
         // The explicit force for the next interval, from this state.
-        self.law.explicit_force(&out.delta, &out.delta_v, &out.delta_a, &mut self.g);
+        self.law
+            .explicit_force(&out.delta, &out.delta_v, &out.delta_a, &mut self.g);
         self.p_prev.copy_from_slice(excitation);
         Ok(true)
     }

@@ -150,18 +150,22 @@ impl RecursiveLeastSquares {
         let svd = rs.clone().svd(true, true);
         let smax = svd.singular_values.max();
         let smin = svd.singular_values.min();
-        let condition = if smin > 0.0 { smax / smin } else { f64::INFINITY };
-        let weakest = || -> String {
-            // The column dominating the smallest right singular vector.
-            let (imin, _) = svd
-                .singular_values
-                .iter()
-                .enumerate()
-                .fold((0, f64::INFINITY), |acc, (i, &s)| if s < acc.1 { (i, s) } else { acc });
-            let vt = svd.v_t.as_ref().map(|v| v.row(imin).transpose());
-            let j = vt.map_or(0, |v| v.iamax());
-            labels.get(j).cloned().unwrap_or_default()
+        let condition = if smin > 0.0 {
+            smax / smin
+        } else {
+            f64::INFINITY
         };
+        let weakest =
+            || -> String {
+                // The column dominating the smallest right singular vector.
+                let (imin, _) = svd.singular_values.iter().enumerate().fold(
+                    (0, f64::INFINITY),
+                    |acc, (i, &s)| if s < acc.1 { (i, s) } else { acc },
+                );
+                let vt = svd.v_t.as_ref().map(|v| v.row(imin).transpose());
+                let j = vt.map_or(0, |v| v.iamax());
+                labels.get(j).cloned().unwrap_or_default()
+            };
         let tol = smax * p as f64 * f64::EPSILON * 16.0;
         let rank = svd.singular_values.iter().filter(|&&s| s > tol).count();
         if rank < p {
@@ -263,7 +267,9 @@ mod tests {
             ls.push(&[x, 2.0 * x], 3.0 * x);
         }
         match ls.solve(&labels(2), 1e12) {
-            Err(RefitError::RankDeficient { rank, params, .. }) => assert_eq!((rank, params), (1, 2)),
+            Err(RefitError::RankDeficient { rank, params, .. }) => {
+                assert_eq!((rank, params), (1, 2))
+            }
             other => panic!("{other:?}"),
         }
     }

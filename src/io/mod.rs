@@ -2,5 +2,6 @@
 //! The numerical core never touches these; it sees [`crate::identify::TestData`] and
 //! per-sample slices.
 pub mod mcap;
+pub mod shm;
 
 pub use self::mcap::{Frame, FrameEncoding};
