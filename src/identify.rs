@@ -102,6 +102,9 @@ pub struct IdentifyOptions {
     /// Kalman: also tune the model-error std by likelihood. Off by default: measured on the
     /// two-beam problem it lets the state absorb the connection force (friction −67 %).
     pub tune_model_error: bool,
+    /// Widen the stuck band by this many posterior std of δ (δ̇) when the estimator
+    /// reports them (`posterior_delta_std_m[c]` in its diagnostics).
+    pub stick_band_sigmas: f64,
 }
 
 impl IdentifyOptions {
@@ -122,6 +125,7 @@ impl IdentifyOptions {
             semi_implicit: true,
             model_error_std: None,
             tune_model_error: false,
+            stick_band_sigmas: std::env::var("JOINTID_STICK_SIGMAS").ok().and_then(|x| x.parse().ok()).unwrap_or(2.0),
         }
     }
 }
@@ -464,6 +468,8 @@ pub struct ParameterAccumulator {
     excluded: Vec<usize>,
     stick_band: f64,
     row: Vec<f64>,
+    extra_d: Vec<f64>,
+    extra_v: Vec<f64>,
 }
 
 impl ParameterAccumulator {
@@ -491,6 +497,17 @@ impl ParameterAccumulator {
             blocks,
             stick_band,
             row: vec![0.0; maxp],
+            extra_d: vec![0.0; setup.connections.len()],
+            extra_v: vec![0.0; setup.connections.len()],
+        }
+    }
+
+    /// Widen connection `c`'s stuck band by absolute amounts (the estimator's uncertainty
+    /// of δ and δ̇ times a factor).
+    pub fn widen_band(&mut self, c: usize, d: f64, v: f64) {
+        if c < self.extra_d.len() {
+            self.extra_d[c] = if d.is_finite() { d.max(0.0) } else { 0.0 };
+            self.extra_v[c] = if v.is_finite() { v.max(0.0) } else { 0.0 };
         }
     }
 
@@ -501,8 +518,8 @@ impl ParameterAccumulator {
             self.peak_d[c] = self.peak_d[c].max(d.abs());
             self.peak_v[c] = self.peak_v[c].max(dv.abs());
             let stuck = basis.iter().any(|b| match b {
-                Basis::SignV => dv.abs() <= (self.stick_band * self.peak_v[c]).max(STICK_FLOOR_V),
-                Basis::SignU => d.abs() <= (self.stick_band * self.peak_d[c]).max(STICK_FLOOR_U),
+                Basis::SignV => dv.abs() <= (self.stick_band * self.peak_v[c]).max(STICK_FLOOR_V) + self.extra_v[c],
+                Basis::SignU => d.abs() <= (self.stick_band * self.peak_d[c]).max(STICK_FLOOR_U) + self.extra_d[c],
                 _ => false,
             });
             if stuck {
@@ -673,6 +690,15 @@ fn run_pass(
     };
     let q = setup.connections.len();
     let mut acc = ParameterAccumulator::new(setup, opts.stick_band, 1.0);
+    if opts.stick_band_sigmas > 0.0 {
+        let t = &est.diagnostics().tuning;
+        let find = |key: String| t.iter().find(|(k, _)| *k == key).map_or(0.0, |(_, v)| *v);
+        for c in 0..setup.connections.len() {
+            let d = find(format!("posterior_delta_std_m[{c}]"));
+            let v = find(format!("posterior_delta_v_std_m_s[{c}]"));
+            acc.widen_band(c, opts.stick_band_sigmas * d, opts.stick_band_sigmas * v);
+        }
+    }
     let mut out = StepOutput::new(q);
     est.start(data.samples[0], &data.excitation[0]);
     for i in 1..data.len() {
