@@ -125,7 +125,10 @@ impl IdentifyOptions {
             semi_implicit: true,
             model_error_std: None,
             tune_model_error: false,
-            stick_band_sigmas: std::env::var("JOINTID_STICK_SIGMAS").ok().and_then(|x| x.parse().ok()).unwrap_or(2.0),
+            stick_band_sigmas: std::env::var("JOINTID_STICK_SIGMAS")
+                .ok()
+                .and_then(|x| x.parse().ok())
+                .unwrap_or(2.0),
         }
     }
 }
@@ -368,8 +371,9 @@ pub fn tune_kalman(
     use crate::estimate::tuning::maximise_log;
     let with_terms = model.with_connection_terms(setup, params);
     let scale = crate::estimate::kalman::force_scale_of(&with_terms);
-    let mut model_error =
-        opts.model_error_std.unwrap_or(crate::estimate::kalman::MODEL_ERROR_RELATIVE * scale);
+    let mut model_error = opts
+        .model_error_std
+        .unwrap_or(crate::estimate::kalman::MODEL_ERROR_RELATIVE * scale);
     let mut runs = 0;
     let scaled = |s: f64| -> Vec<f64> {
         sigma
@@ -422,9 +426,19 @@ pub fn tune_kalman(
             model_error = e;
             ll = l;
             if opts.tune_noise_scale && estimated.iter().any(|&e| e) {
-                let (s, l, n) = maximise_log(noise_scale / 30.0, noise_scale * 30.0, 5, 8, &mut |s| {
-                    kalman_log_likelihood(setup, &with_terms, params, opts, &scaled(s), data, walk, model_error)
-                });
+                let (s, l, n) =
+                    maximise_log(noise_scale / 30.0, noise_scale * 30.0, 5, 8, &mut |s| {
+                        kalman_log_likelihood(
+                            setup,
+                            &with_terms,
+                            params,
+                            opts,
+                            &scaled(s),
+                            data,
+                            walk,
+                            model_error,
+                        )
+                    });
                 runs += n;
                 if l > ll {
                     noise_scale = s;
@@ -518,8 +532,14 @@ impl ParameterAccumulator {
             self.peak_d[c] = self.peak_d[c].max(d.abs());
             self.peak_v[c] = self.peak_v[c].max(dv.abs());
             let stuck = basis.iter().any(|b| match b {
-                Basis::SignV => dv.abs() <= (self.stick_band * self.peak_v[c]).max(STICK_FLOOR_V) + self.extra_v[c],
-                Basis::SignU => d.abs() <= (self.stick_band * self.peak_d[c]).max(STICK_FLOOR_U) + self.extra_d[c],
+                Basis::SignV => {
+                    dv.abs()
+                        <= (self.stick_band * self.peak_v[c]).max(STICK_FLOOR_V) + self.extra_v[c]
+                }
+                Basis::SignU => {
+                    d.abs()
+                        <= (self.stick_band * self.peak_d[c]).max(STICK_FLOOR_U) + self.extra_d[c]
+                }
                 _ => false,
             });
             if stuck {
