@@ -125,10 +125,7 @@ impl IdentifyOptions {
             semi_implicit: true,
             model_error_std: None,
             tune_model_error: false,
-            stick_band_sigmas: std::env::var("JOINTID_STICK_SIGMAS")
-                .ok()
-                .and_then(|x| x.parse().ok())
-                .unwrap_or(2.0),
+            stick_band_sigmas: 3.0,
         }
     }
 }
