@@ -104,6 +104,13 @@ enum Command {
         /// Write inputs, residual forces, connection states, parameters and diagnostics here.
         #[arg(long)]
         out: Option<PathBuf>,
+        /// Track changing parameters: forgetting factor per sample, 0 < λ ≤ 1 (memory
+        /// 1/(1 − λ) samples; default: the setup's estimator.forgetting).
+        #[arg(long)]
+        forgetting: Option<f64>,
+        /// Solve the tracked fit every N samples (default: a quarter of the memory).
+        #[arg(long)]
+        track_every: Option<usize>,
         /// Print one JSON object instead of the table.
         #[arg(long)]
         json: bool,
@@ -198,6 +205,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
             passes,
             estimator,
             out,
+            forgetting,
+            track_every,
             json,
         } => {
             let req = ReplayRequest {
@@ -209,6 +218,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     EstimatorArg::Kalman => EstimatorKind::Kalman,
                 }),
                 out,
+                forgetting,
+                track_every,
             };
             let bar = ProgressBar::new(0);
             bar.set_style(
@@ -356,9 +367,48 @@ fn print_table(o: &ReplayOutcome) {
             );
         }
     }
+    if let Some(track) = id.track.as_ref().filter(|t| t.forgetting < 1.0) {
+        print_track(o, track);
+    }
     println!();
     println!("{} pass(es): {}", id.passes.len(), id.stop_reason);
     if let Some(out) = &o.output {
         println!("results written to {}", out.display());
+    }
+}
+
+/// The tracked parameters, at most ~20 rows spread over the record.
+fn print_track(o: &ReplayOutcome, track: &jointid::track::Track) {
+    let Some(last) = o.identification.passes.last() else {
+        return;
+    };
+    println!();
+    println!(
+        "tracked (forgetting {} per sample, memory {:.0} samples, solved every {}):",
+        track.forgetting, track.memory_samples, track.every
+    );
+    let labels: Vec<String> = last
+        .parameters
+        .iter()
+        .map(|p| format!("{}.{}", p.connection, p.basis))
+        .collect();
+    print!("{:>10}", "sample");
+    for l in &labels {
+        print!(" {l:>26}");
+    }
+    println!();
+    let stride = track.points.len().div_ceil(20).max(1);
+    for (k, p) in track.points.iter().enumerate() {
+        if k % stride != 0 && k + 1 != track.points.len() {
+            continue;
+        }
+        print!("{:>10}", p.sample);
+        for v in &p.parameters {
+            match v {
+                Some(v) => print!(" {:>14.6e} ± {:<9.2e}", v.value, v.std_error),
+                None => print!(" {:>26}", "(unsolved)"),
+            }
+        }
+        println!();
     }
 }

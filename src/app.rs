@@ -13,7 +13,7 @@ use crate::estimate::StepOutput;
 use crate::identify::{Identification, IdentifyOptions, PassReport, identify};
 use crate::io::mcap::{
     ChannelInfo, DIAGNOSTICS_TOPIC, McapIoError, PARAMETERS_TOPIC, RECORDING_METADATA,
-    RESIDUALS_TOPIC, RecordingWriter, STATES_TOPIC, TRUTH_METADATA, stream_frames,
+    RESIDUALS_TOPIC, RecordingWriter, STATES_TOPIC, TRACK_TOPIC, TRUTH_METADATA, stream_frames,
 };
 use crate::io::{Frame, FrameEncoding};
 use crate::setup::{EstimatorKind, Setup, SetupError};
@@ -48,6 +48,11 @@ pub enum AppError {
         path: PathBuf,
         samples: usize,
         cause: String,
+    },
+    #[error("{option}: {reason}")]
+    BadOption {
+        option: &'static str,
+        reason: String,
     },
 }
 
@@ -127,6 +132,12 @@ pub fn simulate_recording(
     .into_iter()
     .map(|(k, v)| (k.to_string(), v))
     .collect();
+    let mut facts = facts;
+    if let crate::simulate::Scenario::RandomStiffnessDrop { at_s, factor, .. } = opts.scenario {
+        // The truth metadata hold the values before the drop; these say what changed.
+        facts.insert("stiffness_drop_at_s".into(), format!("{at_s:e}"));
+        facts.insert("stiffness_drop_factor".into(), format!("{factor}"));
+    }
     w.write_metadata(RECORDING_METADATA, &facts)?;
     w.declare_inputs(&excitation_channels(setup), &response_channels(setup))?;
     for i in 0..sim.excitation.len() {
@@ -173,6 +184,10 @@ pub struct ReplayRequest {
     pub passes: Option<usize>,
     pub estimator: Option<EstimatorKind>,
     pub out: Option<PathBuf>,
+    /// Tracking: forgetting factor per sample (overrides the setup's `estimator.forgetting`).
+    pub forgetting: Option<f64>,
+    /// Tracking: solve interval in samples (overrides `estimator.track_every`).
+    pub track_every: Option<usize>,
 }
 
 /// What `replay` found.
@@ -208,6 +223,7 @@ impl ReplayOutcome {
             "input_warnings": self.input_warnings,
             "input_error": self.input_error,
             "output": self.output,
+            "track": id.track,
             "pass_reports": id.passes,
         })
     }
@@ -301,6 +317,18 @@ pub fn replay(
     }
     if let Some(k) = req.estimator {
         opts.estimator = k;
+    }
+    if let Some(l) = req.forgetting {
+        if !(l > 0.0 && l <= 1.0) {
+            return Err(AppError::BadOption {
+                option: "--forgetting",
+                reason: format!("must be in (0, 1] (memory 1/(1 − λ) samples), got {l}"),
+            });
+        }
+        opts.forgetting = l;
+    }
+    if let Some(n) = req.track_every {
+        opts.track_every = n;
     }
     let keys = setup.param_keys();
     let truth: Option<Vec<f64>> =
@@ -408,6 +436,21 @@ fn parameters_schema() -> serde_json::Value {
     })
 }
 
+fn track_schema() -> serde_json::Value {
+    json!({
+        "type": "object",
+        "title": "jointid.Track",
+        "properties": {
+            "sample": {"type": "integer"}, "t_ns": {"type": "integer"},
+            "forgetting": {"type": "number", "description": "forgetting factor per sample"},
+            "keys": {"type": "array", "items": {"type": "string"}},
+            "parameters": {"type": "array", "items": {"type": ["object", "null"], "properties": {
+                "value": {"type": "number"}, "std_error": {"type": "number"}}}},
+            "unsolved": {"type": "array", "items": {"type": "string"}}
+        }
+    })
+}
+
 fn diagnostics_schema() -> serde_json::Value {
     json!({"type": "object", "title": "jointid.Diagnostics"})
 }
@@ -511,6 +554,25 @@ fn write_results(
                     "rows_excluded_stuck": p.rows_excluded_stuck,
                     "max_change_std_errors": p.max_change_std_errors}),
         )?;
+    }
+    if let Some(track) = &outcome.identification.track {
+        let ts = track_schema();
+        let keys = setup.param_keys();
+        for p in &track.points {
+            let t = data
+                .t_ns
+                .get((p.sample - first) as usize)
+                .copied()
+                .unwrap_or_else(|| t_of(p.sample));
+            w.write_output(
+                TRACK_TOPIC,
+                "jointid.Track",
+                &ts,
+                t,
+                &json!({"sample": p.sample, "t_ns": t, "forgetting": track.forgetting,
+                        "keys": keys, "parameters": p.parameters, "unsolved": p.unsolved}),
+            )?;
+        }
     }
     w.write_output(
         DIAGNOSTICS_TOPIC,

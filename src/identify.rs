@@ -25,6 +25,7 @@ use crate::estimate::{
 };
 use crate::model::Model;
 use crate::setup::{Basis, EstimatorKind, Setup, Weighting};
+use crate::track::{Track, TrackOptions, Tracker};
 
 #[derive(Debug, thiserror::Error)]
 pub enum IdentifyError {
@@ -105,6 +106,10 @@ pub struct IdentifyOptions {
     /// Widen the stuck band by this many posterior std of δ (δ̇) when the estimator
     /// reports them (`posterior_delta_std_m[c]` in its diagnostics).
     pub stick_band_sigmas: f64,
+    /// Tracking: forgetting factor per sample of the tracked fit (see [`crate::track`]).
+    pub forgetting: f64,
+    /// Tracking: solve the tracked fit every this many samples (0: the default interval).
+    pub track_every: usize,
 }
 
 impl IdentifyOptions {
@@ -126,6 +131,8 @@ impl IdentifyOptions {
             model_error_std: None,
             tune_model_error: false,
             stick_band_sigmas: 3.0,
+            forgetting: e.forgetting,
+            track_every: e.track_every,
         }
     }
 }
@@ -173,6 +180,9 @@ pub struct Identification {
     /// Set when a pass failed; the passes before it are kept.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub failure: Option<String>,
+    /// The parameters' time history over the last reported pass (see [`crate::track`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub track: Option<Track>,
 }
 
 impl Identification {
@@ -593,6 +603,7 @@ pub fn identify(
         converged: false,
         stop_reason: String::new(),
         failure: None,
+        track: None,
     };
     let q = setup.connections.len();
     for pass in 1..=opts.passes {
@@ -609,7 +620,10 @@ pub fn identify(
             &mut |o| on_sample(pass, o),
         );
         let report = match outcome {
-            Ok(r) => r,
+            Ok((r, track)) => {
+                result.track = Some(track);
+                r
+            }
             Err(e) => {
                 if result.passes.is_empty() {
                     return Err(e);
@@ -683,7 +697,7 @@ fn run_pass(
     pass: usize,
     truth: Option<&[f64]>,
     on_sample: &mut dyn FnMut(&StepOutput),
-) -> Result<PassReport, IdentifyError> {
+) -> Result<(PassReport, Track), IdentifyError> {
     let mut tuning: Vec<(String, f64)> = Vec::new();
     for ((sensor, s), est) in setup.sensors.iter().zip(sigma).zip(estimated) {
         let kind = if *est { "estimated" } else { "given" };
@@ -707,6 +721,19 @@ fn run_pass(
     };
     let q = setup.connections.len();
     let mut acc = ParameterAccumulator::new(setup, opts.stick_band, 1.0);
+    let mut tracker = Tracker::new(
+        setup,
+        opts.stick_band,
+        TrackOptions {
+            forgetting: opts.forgetting,
+            every: if opts.track_every > 0 {
+                opts.track_every
+            } else {
+                TrackOptions::default_every(opts.forgetting, data.len())
+            },
+            max_condition: opts.max_condition,
+        },
+    );
     if opts.stick_band_sigmas > 0.0 {
         let t = &est.diagnostics().tuning;
         let find = |key: String| t.iter().find(|(k, _)| *k == key).map_or(0.0, |(_, v)| *v);
@@ -714,6 +741,7 @@ fn run_pass(
             let d = find(format!("posterior_delta_std_m[{c}]"));
             let v = find(format!("posterior_delta_v_std_m_s[{c}]"));
             acc.widen_band(c, opts.stick_band_sigmas * d, opts.stick_band_sigmas * v);
+            tracker.widen_band(c, opts.stick_band_sigmas * d, opts.stick_band_sigmas * v);
         }
     }
     let mut out = StepOutput::new(q);
@@ -726,13 +754,16 @@ fn run_pass(
             &mut out,
         )? {
             acc.push(&out);
+            tracker.push(&out);
             on_sample(&out);
         }
     }
     while est.drain(&mut out) {
         acc.push(&out);
+        tracker.push(&out);
         on_sample(&out);
     }
+    let track = tracker.finish(data.samples.last().copied());
     let fits = acc.solve(opts.max_condition);
     let mut parameters = Vec::new();
     let mut cond = Vec::new();
@@ -763,22 +794,25 @@ fn run_pass(
         cond.push(fit.condition);
         rms.push(fit.rms_residual);
     }
-    Ok(PassReport {
-        pass,
-        parameters,
-        fit_condition: cond,
-        fit_rms_residual: rms,
-        rows_used: acc.rows(),
-        rows_excluded_stuck: acc.excluded(),
-        diagnostics: {
-            let mut d = est.diagnostics().clone();
-            d.tuning.extend(tuning);
-            d
+    Ok((
+        PassReport {
+            pass,
+            parameters,
+            fit_condition: cond,
+            fit_rms_residual: rms,
+            rows_used: acc.rows(),
+            rows_excluded_stuck: acc.excluded(),
+            diagnostics: {
+                let mut d = est.diagnostics().clone();
+                d.tuning.extend(tuning);
+                d
+            },
+            max_change_std_errors: None,
+            max_change_force_relative: None,
+            force_scales,
         },
-        max_change_std_errors: None,
-        max_change_force_relative: None,
-        force_scales,
-    })
+        track,
+    ))
 }
 
 /// Convert a step output to a record.

@@ -22,6 +22,7 @@
 //!   the online least-squares refit.
 //! - [`identify`]: passes over data (Step VI), stopping rule, stuck-sample handling.
 //! - [`simulate`]: synthetic tests with a known truth.
+//! - [`track`]: parameters as they change during a test (forgetting, periodic solves).
 //! - [`align`]: joins excitation and response frames, checks gaps and values.
 //! - [`io`]: MCAP recordings (the data contract is in the module docs and the README).
 //! - [`app`]: what the command line does.
@@ -34,3 +35,4 @@ pub mod io;
 pub mod model;
 pub mod setup;
 pub mod simulate;
+pub mod track;

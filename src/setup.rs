@@ -335,6 +335,18 @@ pub struct EstimatorSpec {
     /// absent it is derived from the data (see `estimate::kalman`).
     #[serde(default)]
     pub force_walk_std: Option<f64>,
+    /// Tracking (see `track`): forgetting factor per sample of the tracked fit,
+    /// `0 < λ ≤ 1`; memory `1/(1 − λ)` samples. 1 (default) tracks the growing window.
+    #[serde(default = "default_forgetting")]
+    pub forgetting: f64,
+    /// Tracking: solve the tracked fit every this many samples; 0 (default) = a quarter of
+    /// the memory when forgetting, else a twentieth of the record.
+    #[serde(default)]
+    pub track_every: usize,
+}
+
+fn default_forgetting() -> f64 {
+    1.0
 }
 
 fn default_passes() -> usize {
@@ -360,6 +372,8 @@ impl Default for EstimatorSpec {
             tolerance_relative: default_tol_rel(),
             max_condition: default_max_cond(),
             force_walk_std: None,
+            forgetting: default_forgetting(),
+            track_every: 0,
         }
     }
 }
@@ -925,6 +939,15 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
         return Err(bad(
             "estimator.force_walk_std".into(),
             format!("must be > 0, got {q}"),
+        ));
+    }
+    if !(est.forgetting > 0.0 && est.forgetting <= 1.0) {
+        return Err(bad(
+            "estimator.forgetting".into(),
+            format!(
+                "must be in (0, 1] (memory 1/(1 − λ) samples), got {}",
+                est.forgetting
+            ),
         ));
     }
     Ok(Setup {

@@ -275,7 +275,11 @@ impl TruthSystem {
         for _round in 0..16 {
             // Newton for the current statuses.
             let mut ok = false;
+            let mut prev_step = f64::INFINITY;
             for _it in 0..60 {
+                // Size of the terms that are summed: round-off in the residual is relative
+                // to it, not to the (possibly much smaller) net force.
+                let mut mag = 1.0 + f.amax();
                 let d = d0 - &self.G * &f * bh2;
                 let dv = v0 - &self.G * &f * gh;
                 let da = a0 - &self.G * &f;
@@ -300,6 +304,14 @@ impl TruthSystem {
                                 _ => 0.0,
                             };
                             e[c] = f[c] - phi - fric;
+                            mag = mag.max(fric.abs()).max(
+                                self.blocks[c]
+                                    .0
+                                    .iter()
+                                    .zip(&self.blocks[c].1)
+                                    .map(|(b, p)| (p * b.eval(d[c], dv[c], da[c])).abs())
+                                    .fold(0.0, f64::max),
+                            );
                             for m in 0..q {
                                 let dd = if c == m { 1.0 } else { 0.0 };
                                 j[(c, m)] = dd + (fd * bh2 + fv * gh + fa) * self.G[(c, m)];
@@ -309,10 +321,15 @@ impl TruthSystem {
                 }
                 let step = j.lu().solve(&e)?;
                 f -= &step;
-                if step.amax() <= 1e-14 * (1.0 + f.amax()) {
+                let size = step.amax();
+                // Converged: the step is at round-off of the summed terms, or it stopped
+                // shrinking at a level far below any physical force (a linear law converges
+                // in one step; the next only shuffles round-off).
+                if size <= 1e-14 * mag || (size >= prev_step && size <= 1e-10 * mag) {
                     ok = true;
                     break;
                 }
+                prev_step = size;
             }
             if !ok {
                 return None;

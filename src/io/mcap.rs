@@ -86,6 +86,8 @@ pub const RESIDUALS_TOPIC: &str = "/jointid/residuals";
 pub const STATES_TOPIC: &str = "/jointid/states";
 pub const PARAMETERS_TOPIC: &str = "/jointid/parameters";
 pub const DIAGNOSTICS_TOPIC: &str = "/jointid/diagnostics";
+/// Tracked parameters over time (forgetting fit solved periodically), one message per solve.
+pub const TRACK_TOPIC: &str = "/jointid/track";
 pub const FRAME_SCHEMA_NAME: &str = "jointid.Frame";
 pub const JSON_MESSAGE_ENCODING: &str = "json";
 pub const JSON_SCHEMA_ENCODING: &str = "jsonschema";
