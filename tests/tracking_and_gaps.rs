@@ -68,6 +68,35 @@ fn tracked(v: &serde_json::Value, sample: u64, k: usize) -> f64 {
         .unwrap_or_else(|| panic!("parameter {k} unsolved at sample {sample}: {p}"))
 }
 
+/// Simulate the loosening test and replay it with forgetting 0.995, solved every 50
+/// samples: (the temporary folder, the replay JSON, the recording).
+fn loosening(
+    substeps: &str,
+    noise: &str,
+    extra: &[&str],
+) -> (tempfile::TempDir, serde_json::Value, PathBuf) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let rec = dir.path().join("loosening.mcap");
+    simulate(
+        "recordings/two-beam-bolt.toml",
+        &rec,
+        "loosening",
+        "4000",
+        substeps,
+        noise,
+    );
+    let mut args = vec![
+        rec.to_str().expect("utf-8"),
+        "--forgetting",
+        "0.995",
+        "--track-every",
+        "50",
+    ];
+    args.extend_from_slice(extra);
+    let v = replay_json(&args);
+    (dir, v, rec)
+}
+
 fn final_value(v: &serde_json::Value, k: usize) -> f64 {
     v["parameters"][k]["value"].as_f64().expect("value")
 }
@@ -81,26 +110,7 @@ fn rel(a: f64, b: f64) -> f64 {
 /// whole-record least squares) is neither.
 #[test]
 fn tracking_follows_a_bolt_loosening_exactly_on_noise_free_data() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let rec = dir.path().join("loosening.mcap");
-    simulate(
-        "recordings/two-beam-bolt.toml",
-        &rec,
-        "loosening",
-        "4000",
-        "1",
-        "none",
-    );
-    let r = rec.to_str().expect("utf-8");
-    let v = replay_json(&[
-        r,
-        "--estimator",
-        "paper",
-        "--forgetting",
-        "0.995",
-        "--track-every",
-        "50",
-    ]);
+    let (_dir, v, _) = loosening("1", "none", &["--estimator", "paper"]);
     assert_eq!(v["track"]["every"].as_u64(), Some(50));
     assert!((v["track"]["memory_samples"].as_f64().expect("memory") - 200.0).abs() < 1e-6);
     // The drop acts from the step that produces sample DROP_AT on.
@@ -125,26 +135,8 @@ fn tracking_follows_a_bolt_loosening_exactly_on_noise_free_data() {
 /// value 3 memories after it; without forgetting the history cannot follow.
 #[test]
 fn tracking_follows_a_bolt_loosening_on_noisy_data_with_the_default_estimator() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let rec = dir.path().join("loosening.mcap");
-    simulate(
-        "recordings/two-beam-bolt.toml",
-        &rec,
-        "loosening",
-        "4000",
-        "8",
-        "additive:0.01",
-    );
+    let (_dir, v, rec) = loosening("8", "additive:0.01", &["--passes", "3"]);
     let r = rec.to_str().expect("utf-8");
-    let v = replay_json(&[
-        r,
-        "--passes",
-        "3",
-        "--forgetting",
-        "0.995",
-        "--track-every",
-        "50",
-    ]);
     let before = tracked(&v, DROP_AT - 50, 0);
     assert!(rel(before, K0) < 0.08, "before the drop: {before}");
     let after = tracked(&v, DROP_AT + 600, 0);
