@@ -1,36 +1,11 @@
 //! End-to-end tests of `jointid simulate | replay | inspect`: the real binary on real
 //! recordings, asserting identified parameters against the truth.
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+mod common;
 
-const BIN: &str = env!("CARGO_BIN_EXE_jointid");
+use std::path::Path;
 
-fn repo(p: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
-}
-
-fn run(args: &[&str]) -> Output {
-    Command::new(BIN).args(args).output().expect("run jointid")
-}
-
-fn ok(args: &[&str]) -> String {
-    let out = run(args);
-    assert!(
-        out.status.success(),
-        "jointid {args:?} failed:\n{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-fn replay_json(args: &[&str]) -> serde_json::Value {
-    let mut a = vec!["replay"];
-    a.extend_from_slice(args);
-    a.push("--json");
-    serde_json::from_str(&ok(&a)).expect("replay --json prints JSON")
-}
+use common::{ok, replay_json, repo, run};
 
 /// (basis, value, truth) of the final parameters.
 fn params(v: &serde_json::Value) -> Vec<(String, f64, f64)> {

@@ -7,28 +7,15 @@
 //! dt = 1e-4 s). The stated tracking time (README): within 5 % of the new stiffness
 //! 3 N = 600 samples (60 ms) after the drop.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod common;
 
-const BIN: &str = env!("CARGO_BIN_EXE_jointid");
+use std::path::{Path, PathBuf};
+
+use common::{ok, replay_json, repo};
+
 const DROP_AT: u64 = 2000;
 const K0: f64 = 3.0e5;
 const K1: f64 = 0.7 * 3.0e5;
-
-fn repo(p: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
-}
-
-fn ok(args: &[&str]) -> String {
-    let out = Command::new(BIN).args(args).output().expect("run jointid");
-    assert!(
-        out.status.success(),
-        "jointid {args:?} failed:\n{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
 
 fn simulate(setup: &str, out: &Path, scenario: &str, steps: &str, substeps: &str, noise: &str) {
     ok(&[
@@ -47,13 +34,6 @@ fn simulate(setup: &str, out: &Path, scenario: &str, steps: &str, substeps: &str
         "--seed",
         "3",
     ]);
-}
-
-fn replay_json(args: &[&str]) -> serde_json::Value {
-    let mut a = vec!["replay"];
-    a.extend_from_slice(args);
-    a.push("--json");
-    serde_json::from_str(&ok(&a)).expect("replay --json prints JSON")
 }
 
 /// Tracked value of parameter `k` at `sample` (the track is solved every 50 samples).
