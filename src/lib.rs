@@ -31,6 +31,7 @@ pub mod estimate;
 pub mod identify;
 pub mod integrate;
 pub mod io;
+pub mod matrix_market;
 pub mod model;
 pub mod setup;
 pub mod simulate;
