@@ -15,6 +15,8 @@
 
 use std::collections::BTreeMap;
 
+pub mod synthetic;
+
 use nalgebra::{DMatrix, DVector};
 
 use crate::setup::{Dir, DofRef, LinkSpec, MassKind, Quantity, Setup};
