@@ -28,10 +28,10 @@ use crate::setup::{Dir, DofRef};
 
 #[derive(Debug, thiserror::Error)]
 pub enum MatrixMarketError {
-    #[error("cannot read {path}: {source}")]
+    #[error("cannot read {path}: {error}")]
     Io {
         path: PathBuf,
-        source: std::io::Error,
+        error: std::io::Error,
     },
     #[error("{path}:{line}: {message}")]
     Syntax {
@@ -73,9 +73,9 @@ impl Triplets {
 
 /// Read a Matrix Market file (see the module docs for what is accepted).
 pub fn read_matrix(path: &Path) -> Result<Triplets, MatrixMarketError> {
-    let text = std::fs::read_to_string(path).map_err(|source| MatrixMarketError::Io {
+    let text = std::fs::read_to_string(path).map_err(|error| MatrixMarketError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     })?;
     parse_matrix(&text, path)
 }
@@ -328,9 +328,9 @@ fn parse_dir(s: &str) -> Option<Dir> {
 
 /// Read a DOF map: the label of each matrix row, in row order (0-based index = row − 1).
 pub fn read_dof_map(path: &Path) -> Result<Vec<DofRef>, MatrixMarketError> {
-    let text = std::fs::read_to_string(path).map_err(|source| MatrixMarketError::Io {
+    let text = std::fs::read_to_string(path).map_err(|error| MatrixMarketError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     })?;
     parse_dof_map(&text, path)
 }

@@ -29,10 +29,12 @@ pub enum SetupError {
     },
     #[error("setup {origin}: {message}")]
     Parse { origin: String, message: String },
-    #[error("setup {origin}: model.matrix_market: {source}")]
+    #[error(
+        "setup {origin}: model.matrix_market: {error} (paths are relative to the setup file's directory)"
+    )]
     MatrixMarket {
         origin: String,
-        source: crate::matrix_market::MatrixMarketError,
+        error: crate::matrix_market::MatrixMarketError,
     },
     #[error("setup {origin}: {key}: {message}")]
     Invalid {
@@ -689,9 +691,9 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
                 mm.damping.as_deref().map(at).as_deref(),
                 &at(&mm.dof_map),
             )
-            .map_err(|source| SetupError::MatrixMarket {
+            .map_err(|error| SetupError::MatrixMarket {
                 origin: origin.to_string(),
-                source,
+                error,
             })?;
             Some(std::sync::Arc::new(ext))
         }

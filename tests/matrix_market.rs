@@ -138,3 +138,88 @@ fn bad_external_model_is_reported_with_file_and_entry() {
         .to_string();
     assert!(e.contains("node 12"), "{e}");
 }
+
+#[test]
+fn external_model_with_3d_directions_array_format_and_a_massless_row() {
+    // Node 1 ux and uz with mass, node 1 ry without: ry is condensed out statically,
+    // K* = K_tt − K_tr K_rr⁻¹ K_rt.
+    let dir = tempfile::tempdir().unwrap();
+    let w = |name: &str, text: &str| std::fs::write(dir.path().join(name), text).unwrap();
+    w(
+        "dofs.csv",
+        "# ours\nnode,direction,row\n1,ux,1\n1,ry,2\n1,uz,3\n",
+    );
+    w(
+        "m.mtx",
+        "%%MatrixMarket matrix array real symmetric\n3 3\n1.5\n0\n0\n0\n0\n2.5\n",
+    );
+    w(
+        "k.mtx",
+        "%%MatrixMarket matrix coordinate real symmetric\n3 3 5\n1 1 4e3\n2 1 1e3\n2 2 2e3\n3 2 -5e2\n3 3 3e3\n",
+    );
+    let base = TWO_DOF_SETUP.replace("DIR", "uz");
+    w("setup.toml", &base);
+    let s = Setup::from_file(&dir.path().join("setup.toml")).unwrap();
+    let m = jointid::model::Model::assemble(&s).unwrap();
+    assert_eq!(m.n(), 2);
+    let k = [
+        [4e3 - 1e3 * 1e3 / 2e3, 1e3 * 5e2 / 2e3],
+        [1e3 * 5e2 / 2e3, 3e3 - 5e2 * 5e2 / 2e3],
+    ];
+    for i in 0..2 {
+        for j in 0..2 {
+            assert!((m.K[(i, j)] - k[i][j]).abs() < 1e-9 * 4e3, "{}", m.K);
+        }
+    }
+    assert_eq!(m.M[(1, 1)], 2.5);
+    // A sensor on the massless rotation is refused by name.
+    w(
+        "setup.toml",
+        &base.replace("dir = \"uz\" }\nquantity", "dir = \"ry\" }\nquantity"),
+    );
+    let s = Setup::from_file(&dir.path().join("setup.toml")).unwrap();
+    let e = jointid::model::Model::assemble(&s).unwrap_err().to_string();
+    assert!(e.contains("node 1 ry") && e.contains("no mass"), "{e}");
+    // A direction the map does not have.
+    w(
+        "setup.toml",
+        &base.replace("dir = \"uz\" }\nquantity", "dir = \"uy\" }\nquantity"),
+    );
+    let e = Setup::from_file(&dir.path().join("setup.toml"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("node 1 uy") && e.contains("not in the DOF map"),
+        "{e}"
+    );
+    // And 3-D directions are refused on a beam model.
+    let native = std::fs::read_to_string(root().join("recordings/two-beam-friction.toml"))
+        .unwrap()
+        .replacen(
+            "dof = { node = 1, dir = \"w\" }\nquantity",
+            "dof = { node = 1, dir = \"ux\" }\nquantity",
+            1,
+        );
+    let e = Setup::from_toml(&native, "t").unwrap_err().to_string();
+    assert!(e.contains("only `w` and `rz`"), "{e}");
+}
+
+const TWO_DOF_SETUP: &str = r#"
+[model.matrix_market]
+mass = "m.mtx"
+stiffness = "k.mtx"
+dof_map = "dofs.csv"
+[[excitation]]
+name = "f"
+dof = { node = 1, dir = "ux" }
+[[sensors]]
+name = "s"
+dof = { node = 1, dir = "DIR" }
+quantity = "displacement"
+[[connections]]
+name = "j"
+dof = { node = 1, dir = "ux" }
+basis = ["u"]
+[integrator]
+dt_s = 1e-4
+"#;
