@@ -166,9 +166,9 @@ fn external_model_with_3d_directions_array_format_and_a_massless_row() {
         [4e3 - 1e3 * 1e3 / 2e3, 1e3 * 5e2 / 2e3],
         [1e3 * 5e2 / 2e3, 3e3 - 5e2 * 5e2 / 2e3],
     ];
-    for i in 0..2 {
-        for j in 0..2 {
-            assert!((m.K[(i, j)] - k[i][j]).abs() < 1e-9 * 4e3, "{}", m.K);
+    for (i, row) in k.iter().enumerate() {
+        for (j, kij) in row.iter().enumerate() {
+            assert!((m.K[(i, j)] - kij).abs() < 1e-9 * 4e3, "{}", m.K);
         }
     }
     assert_eq!(m.M[(1, 1)], 2.5);
