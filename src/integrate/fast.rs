@@ -174,31 +174,49 @@ impl ModalStep {
                 max: MAX_LOCAL_DAMPING,
             });
         }
-        // Generalised eigenproblem through the Cholesky factor of M.
-        let chol = model
-            .M
-            .clone()
-            .cholesky()
-            .ok_or(FastError::MassNotDefinite)?;
-        let l = chol.l();
-        // A = L⁻¹ K L⁻ᵀ
-        let linv_k = l
-            .solve_lower_triangular(&model.K)
-            .ok_or(FastError::MassNotDefinite)?;
-        let a = l
-            .solve_lower_triangular(&linv_k.transpose())
-            .ok_or(FastError::MassNotDefinite)?;
+        // Generalised eigenproblem through the Cholesky factor of M, `A = L⁻¹ K L⁻ᵀ`,
+        // `Ψ = L⁻ᵀ V`. A diagonal (lumped) M needs no factorisation: `L = diag(√m)`, and the
+        // two O(n³) triangular solves (a third of the set-up at 1,200 DOFs, measured with
+        // perf) become O(n²) scalings.
+        let diagonal = (0..n).all(|j| (0..n).all(|i| i == j || model.M[(i, j)] == 0.0));
+        let (a, l) = if diagonal {
+            let s = DVector::from_fn(n, |i, _| model.M[(i, i)]);
+            if s.iter().any(|m| m.is_nan() || *m <= 0.0) {
+                return Err(FastError::MassNotDefinite);
+            }
+            let s = s.map(|m| 1.0 / m.sqrt());
+            (
+                DMatrix::from_fn(n, n, |i, j| model.K[(i, j)] * s[i] * s[j]),
+                Err(s),
+            )
+        } else {
+            let chol = model
+                .M
+                .clone()
+                .cholesky()
+                .ok_or(FastError::MassNotDefinite)?;
+            let l = chol.l();
+            let linv_k = l
+                .solve_lower_triangular(&model.K)
+                .ok_or(FastError::MassNotDefinite)?;
+            let a = l
+                .solve_lower_triangular(&linv_k.transpose())
+                .ok_or(FastError::MassNotDefinite)?;
+            (a, Ok(l))
+        };
         let a = (&a + a.transpose()) * 0.5;
         let eig = a.symmetric_eigen();
         let mut order: Vec<usize> = (0..n).collect();
         order.sort_by(|&i, &j| eig.eigenvalues[i].total_cmp(&eig.eigenvalues[j]));
         let v = DMatrix::from_fn(n, n, |i, j| eig.eigenvectors[(i, order[j])]);
         let omega2 = DVector::from_fn(n, |j, _| eig.eigenvalues[order[j]].max(0.0));
-        // Ψ = L⁻ᵀ V
-        let psi = l
-            .transpose()
-            .solve_upper_triangular(&v)
-            .ok_or(FastError::MassNotDefinite)?;
+        let psi = match l {
+            Err(s) => DMatrix::from_fn(n, n, |i, j| v[(i, j)] * s[i]),
+            Ok(l) => l
+                .transpose()
+                .solve_upper_triangular(&v)
+                .ok_or(FastError::MassNotDefinite)?,
+        };
         let bp = psi.transpose() * &model.Lp;
         let bc = psi.transpose() * &model.Lc;
         let r = n;
