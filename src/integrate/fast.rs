@@ -35,9 +35,9 @@
 //! not measured), but the estimators would still take `s` sub-steps per sample and form the
 //! full state. In modal form the sub-steps collapse into one 3 × 3 map per mode and the
 //! stations need only their own rows of `Ψ` (`O(channels · modes)`), which is what the
-//! paper estimator consumes. Measured (`examples/bench_model.rs`, `BENCHMARKS.md`): 5–14×
-//! the dense step at 240 DOFs, 150–2,400× at 2,400 DOFs; at 24 DOFs within a factor 2
-//! either way. The price is the dense eigen-decomposition at set-up, `O(n³)`: 45–75 s at
+//! paper estimator consumes. Measured (`examples/bench_model.rs`, `BENCHMARKS.md`): 5–16×
+//! the dense step at 240 DOFs, 90–2,400× at 2,400 DOFs; at 24 DOFs within a factor 2
+//! either way. The price is the dense eigen-decomposition at set-up, `O(n³)`: 23–32 s at
 //! 2,400 DOFs on one core, infeasible at 24,000 DOFs with dense storage (that needs a
 //! sparse Lanczos basis, not implemented).
 #![allow(non_snake_case)]
