@@ -115,6 +115,18 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Export a setup's component model as Matrix Market (M, K, C), a DOF map and a setup
+    /// that uses them.
+    #[command(
+        name = "export-mm",
+        after_help = "Example:\n  jointid export-mm recordings/two-beam-friction.toml --out recordings/two-beam-mm"
+    )]
+    ExportMm {
+        setup: PathBuf,
+        /// Output directory (created).
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Summarise a recording: channels, samples, setup, truth, damage.
     Inspect {
         recording: PathBuf,
@@ -136,6 +148,16 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> Result<ExitCode> {
     match cli.command {
+        Command::ExportMm { setup, out } => {
+            let s = Setup::from_file(&setup)?;
+            let sum = jointid::matrix_market::export(&s, &out)
+                .with_context(|| format!("exporting {}", setup.display()))?;
+            println!("exported {} DOFs:", sum.dofs);
+            for f in &sum.files {
+                println!("  {}", f.display());
+            }
+            Ok(ExitCode::SUCCESS)
+        }
         Command::Simulate {
             setup,
             out,

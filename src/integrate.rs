@@ -19,10 +19,14 @@ use nalgebra::{DMatrix, DVector};
 use crate::model::Model;
 use crate::setup::{Newmark, Quantity};
 
+pub mod fast;
+
 #[derive(Debug, thiserror::Error)]
 pub enum IntegrateError {
     #[error("the effective mass matrix M + γhC + βh²K is singular (is M positive definite?)")]
     SingularEffectiveMass,
+    #[error(transparent)]
+    Modal(#[from] fast::FastError),
 }
 
 /// State of the model at a sample: displacement, velocity, acceleration (m, m/s, m/s²).

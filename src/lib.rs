@@ -32,6 +32,7 @@ pub mod estimate;
 pub mod identify;
 pub mod integrate;
 pub mod io;
+pub mod matrix_market;
 pub mod model;
 pub mod setup;
 pub mod simulate;

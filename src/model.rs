@@ -15,6 +15,8 @@
 
 use std::collections::BTreeMap;
 
+pub mod synthetic;
+
 use nalgebra::{DMatrix, DVector};
 
 use crate::setup::{Dir, DofRef, LinkSpec, MassKind, Quantity, Setup};
@@ -33,6 +35,14 @@ pub enum ModelError {
     SingularCondensation,
     #[error("the model has no DOF with mass")]
     NoMass,
+    #[error(
+        "{path}: the stiffness matrix is not positive semi-definite (Cholesky of K + τI failed, τ = {tau:e})"
+    )]
+    NotSemiDefinite { path: std::path::PathBuf, tau: f64 },
+    #[error(
+        "the mass matrix is not positive definite on the DOFs that carry mass (Cholesky failed)"
+    )]
+    MassNotDefinite,
 }
 
 /// A sensor channel mapped onto a retained DOF.
@@ -58,6 +68,8 @@ pub struct Model {
     pub stations: Vec<StationChannel>,
     /// Rayleigh coefficients, re-applied when connection terms change K or M.
     pub rayleigh: (f64, f64),
+    /// Implementation of the per-sample step the estimators use (`[integrator] step`).
+    pub step: crate::setup::StepKind,
 }
 
 /// An element's DOFs (w1, θ1, w2, θ2; `None` when fixed), length, EI, mass/length, mass kind.
@@ -73,6 +85,9 @@ enum FullDof {
 
 impl Model {
     pub fn assemble(setup: &Setup) -> Result<Model, ModelError> {
+        if let Some(ext) = &setup.external {
+            return Self::assemble_external(setup, ext);
+        }
         let m = &setup.model;
         // Node positions, including beam interior nodes.
         let mut x: BTreeMap<u32, f64> = m.nodes.iter().map(|n| (n.id, n.x)).collect();
@@ -161,6 +176,8 @@ impl Model {
                 Dir::Rz => full
                     .iter()
                     .position(|f| *f == FullDof::Rz(d.node, usize::MAX)),
+                // Rejected for beam models in setup validation.
+                Dir::Ux | Dir::Uy | Dir::Uz | Dir::Rx | Dir::Ry => None,
             }
         };
         for ms in &m.masses {
@@ -215,7 +232,52 @@ impl Model {
         for (i, s) in m.dashpots.iter().enumerate() {
             add_link(&mut Cd, s, &format!("model.dashpots[{i}]"))?;
         }
+        let labels: Vec<DofRef> = full.iter().map(label).collect();
+        finish(setup, labels, M, K, Cd, find)
+    }
 
+    /// The model of `[model.matrix_market]`: the files' matrices on the DOF map's labels,
+    /// then the same condensation, Rayleigh damping and channel placement as a beam model.
+    /// K must be positive semi-definite: checked by a Cholesky factorisation of
+    /// `K + τ·I`, `τ = 1e-9·max diag(K)` (a negative eigenvalue larger than τ fails it).
+    fn assemble_external(
+        setup: &Setup,
+        ext: &crate::matrix_market::ExternalModel,
+    ) -> Result<Model, ModelError> {
+        let M = ext.mass.to_dense();
+        let K = ext.stiffness.to_dense();
+        let Cd = ext
+            .damping
+            .as_ref()
+            .map_or_else(|| DMatrix::zeros(M.nrows(), M.ncols()), |c| c.to_dense());
+        let tau = 1e-9 * K.diagonal().amax();
+        let shifted = &K + DMatrix::identity(K.nrows(), K.ncols()) * tau;
+        if shifted.cholesky().is_none() {
+            return Err(ModelError::NotSemiDefinite {
+                path: ext.stiffness.path.clone(),
+                tau,
+            });
+        }
+        let labels = ext.dofs.clone();
+        let find = |d: &DofRef| labels.iter().position(|l| l == d);
+        finish(setup, ext.dofs.clone(), M, K, Cd, find)
+    }
+}
+
+/// Condensation of massless DOFs, Rayleigh damping, and placement of excitation,
+/// connections and sensors, shared by beam and external models. `full` labels the rows of
+/// `M`, `K`, `Cd`; `find` maps a setup DOF to its full row.
+fn finish(
+    setup: &Setup,
+    full: Vec<DofRef>,
+    M: DMatrix<f64>,
+    K: DMatrix<f64>,
+    Cd: DMatrix<f64>,
+    find: impl Fn(&DofRef) -> Option<usize>,
+) -> Result<Model, ModelError> {
+    let m = &setup.model;
+    let nf = full.len();
+    {
         // Static condensation of DOFs without inertia.
         let massless: Vec<usize> = (0..nf)
             .filter(|&i| (0..nf).all(|j| M[(i, j)] == 0.0 && M[(j, i)] == 0.0))
@@ -233,7 +295,7 @@ impl Model {
                 if (0..nf).any(|j| Cd[(i, j)] != 0.0) {
                     return Err(ModelError::MasslessDof {
                         what: "a dashpot".into(),
-                        dof: label(&full[i]),
+                        dof: full[i],
                     });
                 }
             }
@@ -246,12 +308,15 @@ impl Model {
             Kc = (&Kc + Kc.transpose()) * 0.5;
         }
         let Mc = pick(&M, &retained, &retained);
+        if Mc.clone().cholesky().is_none() {
+            return Err(ModelError::MassNotDefinite);
+        }
         let (alpha, beta) = m
             .rayleigh
             .as_ref()
             .map_or((0.0, 0.0), |r| (r.alpha, r.beta));
         let Cc = pick(&Cd, &retained, &retained) + &Mc * alpha + &Kc * beta;
-        let dofs: Vec<DofRef> = retained.iter().map(|&i| label(&full[i])).collect();
+        let dofs: Vec<DofRef> = retained.iter().map(|&i| full[i]).collect();
 
         let n = dofs.len();
         let locate = |what: String, d: &DofRef| -> Result<usize, ModelError> {
@@ -290,9 +355,12 @@ impl Model {
             Lc,
             stations,
             rayleigh: (alpha, beta),
+            step: setup.step,
         })
     }
+}
 
+impl Model {
     pub fn n(&self) -> usize {
         self.dofs.len()
     }

@@ -29,6 +29,13 @@ pub enum SetupError {
     },
     #[error("setup {origin}: {message}")]
     Parse { origin: String, message: String },
+    #[error(
+        "setup {origin}: model.matrix_market: {error} (paths are relative to the setup file's directory)"
+    )]
+    MatrixMarket {
+        origin: String,
+        error: crate::matrix_market::MatrixMarketError,
+    },
     #[error("setup {origin}: {key}: {message}")]
     Invalid {
         origin: String,
@@ -63,6 +70,11 @@ pub struct SetupFile {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ModelSpec {
+    /// Component matrices from Matrix Market files instead of beams (see
+    /// [`MatrixMarketSpec`]); then only `rayleigh` may be given besides.
+    #[serde(default)]
+    pub matrix_market: Option<MatrixMarketSpec>,
+    #[serde(default)]
     pub nodes: Vec<NodeSpec>,
     #[serde(default)]
     pub beams: Vec<BeamSpec>,
@@ -79,6 +91,21 @@ pub struct ModelSpec {
     pub supports: Vec<SupportSpec>,
     #[serde(default)]
     pub rayleigh: Option<RayleighSpec>,
+}
+
+/// An external FE model: `[model.matrix_market]` with `mass`, `stiffness`, optional
+/// `damping` (Matrix Market files) and `dof_map` (CSV `node,direction,row`), paths relative
+/// to the directory of the setup file (see [`crate::matrix_market`]). The matrices are the
+/// free (unconstrained) DOFs: apply supports in the FE tool. DOFs whose mass row is zero are
+/// condensed out statically, as for the beam models.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MatrixMarketSpec {
+    pub mass: PathBuf,
+    pub stiffness: PathBuf,
+    #[serde(default)]
+    pub damping: Option<PathBuf>,
+    pub dof_map: PathBuf,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -174,6 +201,13 @@ pub enum Dir {
     W,
     /// In-plane rotation, rad.
     Rz,
+    /// Translations along x, y, z of an external (Matrix Market) model, m.
+    Ux,
+    Uy,
+    Uz,
+    /// Rotations about x, y of an external model, rad (about z is `rz`).
+    Rx,
+    Ry,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
@@ -185,11 +219,12 @@ pub struct DofRef {
 
 impl std::fmt::Display for DofRef {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let d = match self.dir {
-            Dir::W => "w",
-            Dir::Rz => "rz",
-        };
-        write!(f, "node {} {}", self.node, d)
+        write!(
+            f,
+            "node {} {}",
+            self.node,
+            crate::matrix_market::dir_name(self.dir)
+        )
     }
 }
 
@@ -260,6 +295,24 @@ pub struct IntegratorSpec {
     /// Newmark steps the identification model takes per sample.
     #[serde(default = "one")]
     pub substeps: usize,
+    /// How the per-sample step is computed (see [`crate::integrate::fast`]).
+    #[serde(default)]
+    pub step: StepKind,
+}
+
+/// The implementation of the one-sample Newmark map. Both compute the same linear map; they
+/// differ in cost and set-up (see `BENCHMARKS.md`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum StepKind {
+    /// `modal` when the model allows it (M-normalised modes, damping classical plus a
+    /// low-rank part), else `dense`.
+    #[default]
+    Auto,
+    /// Dense `(M + γhC + βh²K)⁻¹` per sub-step: the straightforward baseline.
+    Dense,
+    /// Exact map in modal coordinates; an error when the damping does not allow it.
+    Modal,
 }
 
 fn half() -> f64 {
@@ -561,7 +614,11 @@ pub struct Setup {
     pub dt_s: f64,
     pub newmark: Newmark,
     pub substeps: usize,
+    /// Implementation of the per-sample step (`[integrator] step`).
+    pub step: StepKind,
     pub estimator: EstimatorSpec,
+    /// The checked matrices of `[model.matrix_market]`, when the model is external.
+    pub external: Option<std::sync::Arc<crate::matrix_market::ExternalModel>>,
 }
 
 impl Setup {
@@ -621,8 +678,51 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
         message,
     };
     let m = &raw.model;
+    let external = match &m.matrix_market {
+        None => None,
+        Some(mm) => {
+            let extra = [
+                ("nodes", m.nodes.is_empty()),
+                ("beams", m.beams.is_empty()),
+                ("masses", m.masses.is_empty()),
+                ("springs", m.springs.is_empty()),
+                ("dashpots", m.dashpots.is_empty()),
+                ("hinges", m.hinges.is_empty()),
+                ("supports", m.supports.is_empty()),
+            ];
+            if let Some((k, _)) = extra.iter().find(|(_, empty)| !empty) {
+                return Err(bad(
+                    format!("model.{k}"),
+                    "not allowed with model.matrix_market: put it in the FE model (only model.rayleigh may be added)".into(),
+                ));
+            }
+            // Relative paths are relative to the directory of the setup's origin.
+            let base = Path::new(origin).parent().unwrap_or(Path::new(""));
+            let at = |p: &Path| base.join(p);
+            let ext = crate::matrix_market::ExternalModel::load(
+                &at(&mm.mass),
+                &at(&mm.stiffness),
+                mm.damping.as_deref().map(at).as_deref(),
+                &at(&mm.dof_map),
+            )
+            .map_err(|error| SetupError::MatrixMarket {
+                origin: origin.to_string(),
+                error,
+            })?;
+            Some(std::sync::Arc::new(ext))
+        }
+    };
+    if external.is_none() && m.nodes.is_empty() {
+        return Err(bad(
+            "model.nodes".into(),
+            "give the nodes (or an external model in model.matrix_market)".into(),
+        ));
+    }
     // Nodes: declared ones and interior ones generated by beams.
     let mut node_ids: BTreeSet<u32> = BTreeSet::new();
+    if let Some(ext) = &external {
+        node_ids.extend(ext.dofs.iter().map(|d| d.node));
+    }
     for (i, n) in m.nodes.iter().enumerate() {
         if !n.x.is_finite() {
             return Err(bad(format!("model.nodes[{i}].x"), "must be finite".into()));
@@ -745,6 +845,21 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
     let hinge_set: BTreeSet<u32> = m.hinges.iter().copied().collect();
     let check_dof = |key: String, d: &DofRef| -> Result<(), SetupError> {
         check_node(key.clone(), d.node)?;
+        if let Some(ext) = &external {
+            if !ext.dofs.contains(d) {
+                return Err(bad(
+                    key,
+                    format!("{d} is not in the DOF map {}", ext.dof_map.display()),
+                ));
+            }
+            return Ok(());
+        }
+        if !matches!(d.dir, Dir::W | Dir::Rz) {
+            return Err(bad(
+                key,
+                format!("{d}: a beam model has only `w` and `rz` DOFs"),
+            ));
+        }
         if d.dir == Dir::Rz && hinge_set.contains(&d.node) {
             return Err(bad(
                 key,
@@ -964,7 +1079,9 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
             beta: it.beta,
         },
         substeps: it.substeps,
+        step: it.step,
         estimator: raw.estimator.clone(),
+        external,
     })
 }
 

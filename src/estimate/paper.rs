@@ -17,6 +17,12 @@
 //! measurements, so the state error obeys `e_i = (I − Γ_f G H) Φ e_{i−1} + Γ_f G n_i`. The
 //! spectral radius of that recursion is reported in the diagnostics; at or above 1 the
 //! errors (noise, discretisation mismatch) accumulate step after step.
+//!
+//! The model is advanced either by the dense [`Stepper`] (the baseline) or, per
+//! `[integrator] step`, by the exact modal map [`ModalStep`]; with the modal map the state
+//! is kept in modal coordinates and per sample only the station outputs (their rows of `Ψ`)
+//! and the connection deformations (`ΨᵀLc`) are formed, never the physical state. `auto`
+//! uses the modal map from [`AUTO_MODAL_MIN_DOFS`] DOFs up when the damping allows it.
 
 #![allow(non_snake_case)]
 
@@ -26,21 +32,43 @@ use super::{
     ConnectionLaw, EstimateError, EstimatorDiagnostics, ResidualEstimator, Stations, StepOutput,
     rank_and_condition, spectral_radius,
 };
+use crate::integrate::fast::{ModalOutputs, ModalState, ModalStep};
 use crate::integrate::{State, Stepper};
 use crate::model::Model;
-use crate::setup::{Newmark, Weighting};
+use crate::setup::{Newmark, StepKind, Weighting};
+
+/// Smallest model for which `step = "auto"` chooses the modal map. Below it the dense step
+/// is as fast (measured with `examples/bench_model.rs`, see `BENCHMARKS.md`) and keeps the
+/// shipped results bit-identical to the reference implementation.
+pub const AUTO_MODAL_MIN_DOFS: usize = 48;
+
+/// How the model is advanced: the dense baseline or the exact modal map.
+#[allow(clippy::large_enum_variant)] // one per estimator, never moved per sample
+enum Engine {
+    Dense {
+        stepper: Stepper,
+        gamma_u: DMatrix<f64>,
+        gamma_v: DMatrix<f64>,
+        gamma_a: DMatrix<f64>,
+        state: State,
+        pred: State,
+    },
+    Modal {
+        step: ModalStep,
+        outputs: ModalOutputs,
+        /// Modal Γ_f, 3r × q.
+        gamma: DMatrix<f64>,
+        state: ModalState,
+        pred: ModalState,
+    },
+}
 
 pub struct PaperEstimator {
-    stepper: Stepper,
+    engine: Engine,
     law: ConnectionLaw,
     stations: Stations,
-    gamma_u: DMatrix<f64>,
-    gamma_v: DMatrix<f64>,
-    gamma_a: DMatrix<f64>,
     /// `(SᵀWS)⁻¹SᵀW`, q × m.
     gain: DMatrix<f64>,
-    state: State,
-    pred: State,
     p_prev: Vec<f64>,
     g: DVector<f64>,
     lin: DVector<f64>,
@@ -68,13 +96,55 @@ pub struct EstimatorInputs<'a> {
 impl PaperEstimator {
     pub fn new(inp: EstimatorInputs<'_>) -> Result<Self, EstimateError> {
         let model = inp.model;
-        let mut stepper = Stepper::new(model, inp.dt_s, inp.substeps, inp.newmark)?;
         let n = model.n();
         let q = inp.law.q();
         let stations = Stations::from_model(model);
         let m = stations.m();
-        let gamma = stepper.force_response();
-        let S = stations.pick_rows(&gamma, n);
+        let modal = match model.step {
+            StepKind::Dense => None,
+            StepKind::Modal => Some(
+                ModalStep::new(model, inp.dt_s, inp.substeps, inp.newmark)
+                    .map_err(crate::integrate::IntegrateError::from)?,
+            ),
+            StepKind::Auto if n >= AUTO_MODAL_MIN_DOFS => {
+                ModalStep::new(model, inp.dt_s, inp.substeps, inp.newmark).ok()
+            }
+            StepKind::Auto => None,
+        };
+        let (mut engine, S) = match modal {
+            Some(mut step) => {
+                let gamma = step.force_response();
+                let outputs = ModalOutputs::new(&step, &stations.channels);
+                let S = outputs.sensitivity(&gamma);
+                let r = step.modes();
+                (
+                    Engine::Modal {
+                        step,
+                        outputs,
+                        gamma,
+                        state: ModalState::zeros(r),
+                        pred: ModalState::zeros(r),
+                    },
+                    S,
+                )
+            }
+            None => {
+                let mut stepper = Stepper::new(model, inp.dt_s, inp.substeps, inp.newmark)?;
+                let gamma = stepper.force_response();
+                let S = stations.pick_rows(&gamma, n);
+                (
+                    Engine::Dense {
+                        stepper,
+                        gamma_u: gamma.rows(0, n).into_owned(),
+                        gamma_v: gamma.rows(n, n).into_owned(),
+                        gamma_a: gamma.rows(2 * n, n).into_owned(),
+                        state: State::zeros(n),
+                        pred: State::zeros(n),
+                    },
+                    S,
+                )
+            }
+        };
         let w: Vec<f64> = match inp.weighting {
             Weighting::Unit => vec![1.0; m],
             Weighting::InverseVariance => inp.channel_sigma.iter().map(|s| 1.0 / (s * s)).collect(),
@@ -111,7 +181,14 @@ impl PaperEstimator {
             ..Default::default()
         };
         if inp.spectral_diagnostics {
-            let phi = stepper.transition();
+            // The 3n × 3n transition is formed densely whatever the engine (small models).
+            let (phi, gamma) = match &mut engine {
+                Engine::Dense { stepper, .. } => (stepper.transition(), stepper.force_response()),
+                Engine::Modal { .. } => {
+                    let mut s = Stepper::new(model, inp.dt_s, inp.substeps, inp.newmark)?;
+                    (s.transition(), s.force_response())
+                }
+            };
             let h = DMatrix::from_fn(m, 3 * n, |i, j| {
                 if stations.state_index(i, n) == j {
                     1.0
@@ -134,15 +211,10 @@ impl PaperEstimator {
             ));
         }
         Ok(Self {
-            gamma_u: gamma.rows(0, n).into_owned(),
-            gamma_v: gamma.rows(n, n).into_owned(),
-            gamma_a: gamma.rows(2 * n, n).into_owned(),
-            stepper,
+            engine,
             law: inp.law,
             stations,
             gain,
-            state: State::zeros(n),
-            pred: State::zeros(n),
             p_prev: vec![0.0; model.Lp.ncols()],
             g: DVector::zeros(q),
             lin: DVector::zeros(q),
@@ -159,16 +231,22 @@ impl ResidualEstimator for PaperEstimator {
     }
 
     fn start(&mut self, _sample: u64, excitation: &[f64]) {
-        let n = self.stepper.n;
-        self.state = State::zeros(n);
         // A pass starts at rest with zero total connection force (recordings start from
         // rest; a stuck joint at rest carries nothing). The explicit part of f̂ is still
         // evaluated so the first prediction uses the current law.
         let q = self.law.q();
         let z = DVector::zeros(q);
         self.law.explicit_force(&z, &z, &z, &mut self.g);
-        self.stepper
-            .initial_acceleration(&mut self.state, excitation, &z);
+        match &mut self.engine {
+            Engine::Dense { stepper, state, .. } => {
+                *state = State::zeros(stepper.n);
+                stepper.initial_acceleration(state, excitation, &z);
+            }
+            Engine::Modal { step, state, .. } => {
+                *state = ModalState::zeros(step.modes());
+                step.initial_acceleration(state, excitation, &z);
+            }
+        }
         self.p_prev.copy_from_slice(excitation);
     }
 
@@ -179,32 +257,66 @@ impl ResidualEstimator for PaperEstimator {
         measured: &[f64],
         out: &mut StepOutput,
     ) -> Result<bool, EstimateError> {
-        // Step I: predict with R = 0 and the explicit part of f̂ from the previous state.
-        self.pred.u.copy_from(&self.state.u);
-        self.pred.v.copy_from(&self.state.v);
-        self.pred.a.copy_from(&self.state.a);
-        self.stepper
-            .advance(&mut self.pred, &self.p_prev, excitation, &self.g);
-        // Step III: R = G (y_m − y_p).
-        for (k, &(dof, q)) in self.stations.channels.iter().enumerate() {
-            self.innov[k] = measured[k] - self.pred.channel(dof, q);
-        }
-        self.r.gemv(1.0, &self.gain, &self.innov, 0.0);
-        // Step IV: the model advanced with R.
-        self.state.u.copy_from(&self.pred.u);
-        self.state.u.gemv(1.0, &self.gamma_u, &self.r, 1.0);
-        self.state.v.copy_from(&self.pred.v);
-        self.state.v.gemv(1.0, &self.gamma_v, &self.r, 1.0);
-        self.state.a.copy_from(&self.pred.a);
-        self.state.a.gemv(1.0, &self.gamma_a, &self.r, 1.0);
-        if !self.state.is_finite() {
-            return Err(EstimateError::Diverged { sample });
-        }
-        let lc = &self.stepper.Lc;
         out.sample = sample;
-        out.delta.gemv_tr(1.0, lc, &self.state.u, 0.0);
-        out.delta_v.gemv_tr(1.0, lc, &self.state.v, 0.0);
-        out.delta_a.gemv_tr(1.0, lc, &self.state.a, 0.0);
+        match &mut self.engine {
+            Engine::Dense {
+                stepper,
+                gamma_u,
+                gamma_v,
+                gamma_a,
+                state,
+                pred,
+            } => {
+                // Step I: predict with R = 0 and the explicit part of f̂ from the previous
+                // state.
+                pred.u.copy_from(&state.u);
+                pred.v.copy_from(&state.v);
+                pred.a.copy_from(&state.a);
+                stepper.advance(pred, &self.p_prev, excitation, &self.g);
+                // Step III: R = G (y_m − y_p).
+                for (k, &(dof, q)) in self.stations.channels.iter().enumerate() {
+                    self.innov[k] = measured[k] - pred.channel(dof, q);
+                }
+                self.r.gemv(1.0, &self.gain, &self.innov, 0.0);
+                // Step IV: the model advanced with R.
+                state.u.copy_from(&pred.u);
+                state.u.gemv(1.0, gamma_u, &self.r, 1.0);
+                state.v.copy_from(&pred.v);
+                state.v.gemv(1.0, gamma_v, &self.r, 1.0);
+                state.a.copy_from(&pred.a);
+                state.a.gemv(1.0, gamma_a, &self.r, 1.0);
+                if !state.is_finite() {
+                    return Err(EstimateError::Diverged { sample });
+                }
+                let lc = &stepper.Lc;
+                out.delta.gemv_tr(1.0, lc, &state.u, 0.0);
+                out.delta_v.gemv_tr(1.0, lc, &state.v, 0.0);
+                out.delta_a.gemv_tr(1.0, lc, &state.a, 0.0);
+            }
+            Engine::Modal {
+                step,
+                outputs,
+                gamma,
+                state,
+                pred,
+            } => {
+                pred.copy_from(state);
+                step.advance(pred, &self.p_prev, excitation, &self.g);
+                for (k, (i, y)) in self.innov.iter_mut().zip(measured).enumerate() {
+                    *i = y - outputs.channel(pred, k);
+                }
+                self.r.gemv(1.0, &self.gain, &self.innov, 0.0);
+                state.copy_from(pred);
+                state.add_response(gamma, &self.r);
+                if !state.is_finite() {
+                    return Err(EstimateError::Diverged { sample });
+                }
+                // δ = LcᵀΨ η = (ΨᵀLc)ᵀ η.
+                out.delta.gemv_tr(1.0, &step.bc, &state.q, 0.0);
+                out.delta_v.gemv_tr(1.0, &step.bc, &state.qd, 0.0);
+                out.delta_a.gemv_tr(1.0, &step.bc, &state.qdd, 0.0);
+            }
+        }
         self.law
             .linear_force(&out.delta, &out.delta_v, &out.delta_a, &mut self.lin);
         out.residual.copy_from(&self.r);
