@@ -335,6 +335,18 @@ pub struct EstimatorSpec {
     /// absent it is derived from the data (see `estimate::kalman`).
     #[serde(default)]
     pub force_walk_std: Option<f64>,
+    /// After the passes, refine the parameters by output-error (maximum-likelihood)
+    /// Gauss–Newton from the residual-force estimate (see `estimate::output_error`).
+    /// Default on for `kalman`; the `paper` estimator is left as the 1989 reference.
+    #[serde(default = "default_true")]
+    pub output_error: bool,
+    /// Compute the Cramér–Rao lower bound of every parameter for the recording.
+    #[serde(default = "default_true")]
+    pub crlb: bool,
+}
+
+fn default_true() -> bool {
+    true
 }
 
 fn default_passes() -> usize {
@@ -360,6 +372,8 @@ impl Default for EstimatorSpec {
             tolerance_relative: default_tol_rel(),
             max_condition: default_max_cond(),
             force_walk_std: None,
+            output_error: true,
+            crlb: true,
         }
     }
 }

@@ -166,17 +166,38 @@ pub struct TruthSystem {
 
 impl TruthSystem {
     pub fn new(setup: &Setup, model: &Model, h: f64) -> Result<Self, SimulateError> {
+        let mut params = Vec::new();
+        for c in &setup.connections {
+            params.extend(
+                c.truth
+                    .as_ref()
+                    .ok_or_else(|| SimulateError::NoTruth(c.name.clone()))?,
+            );
+        }
+        Self::with_params(setup, model, h, &params)
+    }
+
+    /// The system with the connection law `params` (all connections' parameters in setup
+    /// order) instead of the setup's `truth`: the output-error model of `identify`.
+    pub fn with_params(
+        setup: &Setup,
+        model: &Model,
+        h: f64,
+        params: &[f64],
+    ) -> Result<Self, SimulateError> {
         let Newmark = setup.newmark;
         let meff = &model.M + &model.C * (Newmark.gamma * h) + &model.K * (Newmark.beta * h * h);
         let meff_inv = meff.try_inverse().ok_or(SimulateError::Singular)?;
         let Y = &meff_inv * &model.Lc;
         let G = model.Lc.transpose() * &Y;
         let mut blocks = Vec::new();
+        let mut off = 0;
         for c in &setup.connections {
-            let truth = c
-                .truth
-                .clone()
-                .ok_or_else(|| SimulateError::NoTruth(c.name.clone()))?;
+            let truth = params
+                .get(off..off + c.basis.len())
+                .ok_or_else(|| SimulateError::NoTruth(c.name.clone()))?
+                .to_vec();
+            off += c.basis.len();
             let mut sign = None;
             for (b, &p) in c.basis.iter().zip(&truth) {
                 if matches!(b, Basis::SignU | Basis::SignV) && p != 0.0 {
@@ -406,6 +427,82 @@ fn excitation_at(sc: &Scenario, t: f64, white: &[f64], dt: f64) -> f64 {
             a + fr * (b - a)
         }
     }
+}
+
+/// Noise-free station outputs of the model with connection parameters `params`, driven by a
+/// recorded excitation (linearly interpolated between samples, as the `random` scenario
+/// generates it), from rest, with `substeps` implicit Newmark steps per sample. This is the
+/// output-error prediction `ŷ(p)` whose sensitivities give the Cramér–Rao bound.
+pub fn response_to_excitation(
+    setup: &Setup,
+    model: &Model,
+    params: &[f64],
+    excitation: &[Vec<f64>],
+    dt_s: f64,
+    substeps: usize,
+) -> Result<Vec<Vec<f64>>, SimulateError> {
+    if substeps == 0 || excitation.is_empty() {
+        return Err(SimulateError::Options(
+            "substeps and the excitation length must be at least 1".into(),
+        ));
+    }
+    let h = dt_s / substeps as f64;
+    let mut sys = TruthSystem::with_params(setup, model, h, params)?;
+    let n = model.n();
+    let q = model.Lc.ncols();
+    let ne = model.Lp.ncols();
+    let mut s = State::zeros(n);
+    let f0 = DVector::from_iterator(
+        q,
+        (0..q).map(|c| {
+            let (basis, p, _) = &sys.blocks[c];
+            basis
+                .iter()
+                .zip(p)
+                .map(|(b, pj)| if let Basis::Const(k) = b { k * pj } else { 0.0 })
+                .sum()
+        }),
+    );
+    let p0 = DVector::from_iterator(
+        ne,
+        (0..ne).map(|j| excitation[0].get(j).copied().unwrap_or(0.0)),
+    );
+    let rhs = &model.Lp * &p0 - &model.Lc * &f0;
+    s.a = model
+        .M
+        .clone()
+        .lu()
+        .solve(&rhs)
+        .ok_or(SimulateError::Singular)?;
+    let record = |s: &State| -> Vec<f64> {
+        model
+            .stations
+            .iter()
+            .map(|st| s.channel(st.dof, st.quantity))
+            .collect()
+    };
+    let mut out = Vec::with_capacity(excitation.len());
+    out.push(record(&s));
+    let mut pt = DVector::zeros(ne);
+    for i in 1..excitation.len() {
+        let (a, b) = (&excitation[i - 1], &excitation[i]);
+        for k in 1..=substeps {
+            let t = k as f64 / substeps as f64;
+            for j in 0..ne {
+                let (x0, x1) = (
+                    a.get(j).copied().unwrap_or(0.0),
+                    b.get(j).copied().unwrap_or(0.0),
+                );
+                pt[j] = x0 + t * (x1 - x0);
+            }
+            sys.substep(&mut s, &pt).ok_or(SimulateError::Diverged(i))?;
+        }
+        if !s.is_finite() {
+            return Err(SimulateError::Diverged(i));
+        }
+        out.push(record(&s));
+    }
+    Ok(out)
 }
 
 /// Run a synthetic test.
