@@ -138,7 +138,7 @@ impl IdentifyOptions {
             tune_model_error: false,
             stick_band_sigmas: 3.0,
             output_error: e.output_error && e.kind == EstimatorKind::Kalman,
-            output_error_iterations: 10,
+            output_error_iterations: 20,
             crlb: e.crlb,
             retune_above_std_errors: 1.0,
             max_tunings: 3,
@@ -690,7 +690,7 @@ pub fn identify(
                 }
                 result.failure = Some(e.to_string());
                 result.stop_reason = format!("pass {pass} failed: {e}");
-                return Ok(result);
+                break;
             }
         };
         let _ = q;
@@ -772,8 +772,10 @@ pub fn identify(
             break;
         }
     }
-    if result.failure.is_none() {
-        finish_with_output_error(setup, &model, data, opts, &sigma, &mut result);
+    // The output-error stage starts from the last finished pass, also after a failed one.
+    finish_with_output_error(setup, &model, data, opts, &sigma, &mut result);
+    if result.failure.is_some() {
+        return Ok(result);
     }
     if !result.converged {
         result.stop_reason = format!(
@@ -840,16 +842,19 @@ fn finish_with_output_error(
             opts.output_error_iterations,
         ) {
             Ok(mut r) => {
-                // Only a refinement that stays within 3 standard errors of the residual-force
-                // estimate is taken: a larger move means the descent left the start's basin
-                // (the rough cost of sign(u) friction), and the start is the safer answer.
+                // A refinement that converged (its last step below 0.05 of the bound) is taken;
+                // one that did not is taken only when it stayed within 3 standard errors of
+                // the residual-force estimate: a larger unfinished move means the descent is
+                // wandering on a rough cost (sign(u) friction), and the start is safer.
                 let far = r
                     .values
                     .iter()
                     .zip(&values)
                     .zip(&scales)
                     .position(|((a, b), s)| (a - b).abs() > 3.0 * s);
+                let settled = r.report.note.starts_with("converged");
                 if r.report.accepted
+                    && !settled
                     && let Some(j) = far
                 {
                     r.report.accepted = false;
