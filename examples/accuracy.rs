@@ -7,6 +7,7 @@
 //! cargo run --release --example accuracy -- [--setup FILE] [--basis u,sign(v)] [--truth 3e5,3000]
 //!     [--noise 0.1] [--samples 2000] [--seeds 20] [--data-substeps 64] [--model-substeps 16]
 //!     [--estimator kalman|paper] [--no-output-error] [--passes 10] [--grid]
+//!     [--grid-samples 2000,20000]
 //! ```
 //!
 //! `--grid` runs the README grid (noise 10/50/100 %, 2,000 and 20,000 samples, both
@@ -223,6 +224,7 @@ fn main() -> Result<()> {
         first_seed: 1,
     };
     let mut grid = false;
+    let mut grid_samples = vec![2000, 20000];
     let args: Vec<String> = std::env::args().skip(1).collect();
     let mut i = 0;
     while i < args.len() {
@@ -245,6 +247,12 @@ fn main() -> Result<()> {
                     x => bail!("unknown estimator {x}"),
                 }
             }
+            "--grid-samples" => {
+                grid_samples = val()?
+                    .split(',')
+                    .map(|x| x.trim().parse())
+                    .collect::<Result<_, _>>()?
+            }
             "--no-output-error" => {
                 c.output_error = false;
                 i -= 1;
@@ -259,7 +267,7 @@ fn main() -> Result<()> {
     }
     header();
     if grid {
-        for samples in [2000, 20000] {
+        for &samples in &grid_samples {
             for noise in [0.1, 0.5, 1.0] {
                 for est in [EstimatorKind::Paper, EstimatorKind::Kalman] {
                     let mut g = c.clone();
