@@ -831,6 +831,17 @@ fn finish_with_output_error(
         );
         return;
     }
+    // Each sensitivity is a full implicit simulation of the record; beyond this many
+    // sub-steps per simulation the stage would dominate the replay time by far.
+    const MAX_SUBSTEPS: usize = 4_000_000;
+    if data.len().saturating_mul(opts.substeps) > MAX_SUBSTEPS {
+        result.notes.push(format!(
+            "output-error refinement and Cramér–Rao bound skipped: {} samples × {} sub-steps exceed {MAX_SUBSTEPS} simulated steps per run",
+            data.len(),
+            opts.substeps
+        ));
+        return;
+    }
     let values: Vec<f64> = last.parameters.iter().map(|p| p.value).collect();
     let scales: Vec<f64> = last
         .parameters
@@ -931,7 +942,9 @@ fn run_pass(
     frozen: Option<&KalmanTuning>,
     on_sample: &mut dyn FnMut(&StepOutput),
 ) -> Result<(PassReport, Option<KalmanTuning>), IdentifyError> {
-    let mut tuning: Vec<(String, f64)> = Vec::new();
+    // The model's Newmark sub-steps per sample: reported because continuous-time data are
+    // biased by too few of them (see the README's accuracy section).
+    let mut tuning: Vec<(String, f64)> = vec![("model_substeps".into(), opts.substeps as f64)];
     for ((sensor, s), est) in setup.sensors.iter().zip(sigma).zip(estimated) {
         let kind = if *est { "estimated" } else { "given" };
         tuning.push((format!("noise_std_{kind}[{}]", sensor.name), *s));
