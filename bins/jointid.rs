@@ -371,8 +371,8 @@ fn print_table(o: &ReplayOutcome) {
         }
         println!();
         println!(
-            "{:<12} {:<12} {:>14} {:>12} {:>14} {:>9}  unit",
-            "connection", "basis", "value", "std error", "truth", "error %"
+            "{:<12} {:<12} {:>14} {:>12} {:>12} {:>14} {:>9}  unit",
+            "connection", "basis", "value", "std error", "CR bound", "truth", "error %"
         );
         for p in &last.parameters {
             let (truth, err) = match p.truth {
@@ -383,14 +383,32 @@ fn print_table(o: &ReplayOutcome) {
                 Some(t) => (format!("{t:.6e}"), "-".into()),
                 None => ("-".into(), "-".into()),
             };
+            let bound = p.crlb.map_or("-".to_string(), |b| format!("{b:.3e}"));
             println!(
-                "{:<12} {:<12} {:>14.6e} {:>12.3e} {:>14} {:>9}  {}",
-                p.connection, p.basis, p.value, p.std_error, truth, err, p.unit
+                "{:<12} {:<12} {:>14.6e} {:>12.3e} {:>12} {:>14} {:>9}  {}",
+                p.connection, p.basis, p.value, p.std_error, bound, truth, err, p.unit
             );
         }
     }
     if let Some(track) = id.track.as_ref().filter(|t| t.forgetting < 1.0) {
         print_track(o, track);
+    }
+    if let Some(oe) = &id.output_error {
+        println!(
+            "output-error refinement: {} after {} iteration(s), normalised cost {:.4} -> {:.4} ({})",
+            if oe.accepted {
+                "accepted"
+            } else {
+                "not accepted"
+            },
+            oe.iterations,
+            oe.cost_start,
+            oe.cost_end,
+            oe.note
+        );
+    }
+    for n in &id.notes {
+        println!("note: {n}");
     }
     println!();
     println!("{} pass(es): {}", id.passes.len(), id.stop_reason);

@@ -220,6 +220,8 @@ impl ReplayOutcome {
             "converged": id.converged,
             "stop_reason": id.stop_reason,
             "failure": id.failure,
+            "output_error": id.output_error,
+            "notes": id.notes,
             "input_warnings": self.input_warnings,
             "input_error": self.input_error,
             "output": self.output,

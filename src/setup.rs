@@ -396,10 +396,22 @@ pub struct EstimatorSpec {
     /// the memory when forgetting, else a twentieth of the record.
     #[serde(default)]
     pub track_every: usize,
+    /// After the passes, refine the parameters by output-error (maximum-likelihood)
+    /// Gauss–Newton from the residual-force estimate (see `estimate::output_error`).
+    /// Default on for `kalman`; the `paper` estimator is left as the 1989 reference.
+    #[serde(default = "default_true")]
+    pub output_error: bool,
+    /// Compute the Cramér–Rao lower bound of every parameter for the recording.
+    #[serde(default = "default_true")]
+    pub crlb: bool,
 }
 
 fn default_forgetting() -> f64 {
     1.0
+}
+
+fn default_true() -> bool {
+    true
 }
 
 fn default_passes() -> usize {
@@ -427,6 +439,8 @@ impl Default for EstimatorSpec {
             force_walk_std: None,
             forgetting: default_forgetting(),
             track_every: 0,
+            output_error: true,
+            crlb: true,
         }
     }
 }

@@ -19,6 +19,7 @@ fn params(setup: &Path, estimator: EstimatorKind, passes: usize) -> Vec<f64> {
         passes: Some(passes),
         estimator: Some(estimator),
         out: None,
+        ..Default::default()
     };
     let out = app::replay(&req, &mut |_| {}).expect("replay");
     out.identification

@@ -199,10 +199,24 @@ impl KalmanEstimator {
         let psi = &A * (DMatrix::identity(nz, nz) - &gain * &H);
         // Steady-state smoothed covariance P⁻ − P⁻ Λ P⁻ with Λ = HᵀΣ⁻¹H + Ψᵀ Λ Ψ (Stein
         // equation, by doubling); it gives the posterior uncertainty of δ and δ̇.
-        let p_state = if opts.smooth {
+        // The doubling only converges when Ψ is strictly stable; with the residual force's
+        // random walk the closed loop can sit at ρ ≈ 1 − 1e-7 or even round to ≥ 1, and the
+        // Stein solution then is garbage (measured: NaN, or a δ̇ std of 25 m/s on a joint
+        // moving at 0.1 m/s, which made the stuck band swallow half the samples). The
+        // smoothed covariance must lie between 0 and the filtered one on the diagonal;
+        // otherwise fall back to the filtered covariance (an upper bound, so the stuck band
+        // errs wide).
+        let p_state = if opts.smooth && rho < 1.0 - 1e-9 {
             let lam = solve_stein(&psi, &(&ht_sinv * &H));
             let ps = &P - &P * lam * &P;
-            (&ps + ps.transpose()) * 0.5
+            let ps = (&ps + ps.transpose()) * 0.5;
+            let valid = (0..nz).all(|i| {
+                let d = ps[(i, i)];
+                d.is_finite()
+                    && d >= -1e-12 * P[(i, i)].abs()
+                    && d <= p_post[(i, i)] * (1.0 + 1e-6) + 1e-300
+            });
+            if valid { ps } else { p_post.clone() }
         } else {
             p_post.clone()
         };
@@ -212,7 +226,12 @@ impl KalmanEstimator {
                 .map(|c| {
                     let l = lc.column(c);
                     let blk = p_state.view((off, off), (n, n));
-                    (l.transpose() * blk * l)[(0, 0)].max(0.0).sqrt()
+                    let v = (l.transpose() * blk * l)[(0, 0)];
+                    if v.is_finite() {
+                        v.max(0.0).sqrt()
+                    } else {
+                        0.0
+                    }
                 })
                 .collect()
         };
