@@ -24,6 +24,7 @@
 //! - [`simulate`]: synthetic tests with a known truth.
 //! - [`align`]: joins excitation and response frames, checks gaps and values.
 //! - [`io`]: MCAP recordings (the data contract is in the module docs and the README).
+//! - [`pipeline`]: source → aligner → stepper → refitter → sinks on threads (replay and live).
 //! - [`app`]: what the command line does.
 pub mod align;
 pub mod app;
@@ -32,5 +33,6 @@ pub mod identify;
 pub mod integrate;
 pub mod io;
 pub mod model;
+pub mod pipeline;
 pub mod setup;
 pub mod simulate;
