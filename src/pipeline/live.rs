@@ -85,8 +85,8 @@ use crate::model::Model;
 use crate::setup::{EstimatorKind, Setup};
 
 /// Samples used to estimate channel noise levels the setup does not give, before the
-/// online estimator starts (80 ms at 51.2 kHz; the samples are then stepped normally).
-pub const WARMUP_SAMPLES: usize = 4096;
+/// online estimator starts (20 ms at 51.2 kHz; the samples are then stepped normally).
+pub const WARMUP_SAMPLES: usize = 1000;
 /// A sample index this far below the last one of its stream starts a new run (a
 /// restarted acquisition program) instead of counting as late.
 pub const RESTART_WINDOW: u64 = 4096;
@@ -489,7 +489,7 @@ impl LiveAligner {
         out: &mut Vec<LiveItem>,
     ) -> Result<(), String> {
         let tol = self.dt_ns.unwrap_or(self.setup_dt_s * 1e9);
-        if (e.t_ns as f64 - r.t_ns as f64).abs() > 0.5 * tol {
+        if e.t_ns.abs_diff(r.t_ns) as f64 > 0.5 * tol {
             return Err(format!(
                 "sample {}: excitation time {} ns and response time {} ns differ by more than half a sample interval: the streams run at different rates or clocks",
                 e.sample, e.t_ns, r.t_ns
@@ -526,7 +526,12 @@ impl LiveAligner {
         };
         let continuous = match self.last {
             Some((pr, ps, pt)) if pr == run && a.sample == ps + 1 => {
-                let dt = a.t_ns as f64 - pt as f64;
+                // Integer difference first: epoch nanoseconds do not fit an f64's mantissa.
+                let dt = if a.t_ns >= pt {
+                    (a.t_ns - pt) as f64
+                } else {
+                    -((pt - a.t_ns) as f64)
+                };
                 match self.dt_ns {
                     Some(want) => {
                         if (dt - want).abs() > 0.01 * want {
@@ -545,6 +550,14 @@ impl LiveAligner {
                                 a.sample, a.t_ns
                             ));
                         }
+                        // The setup's interval when the stream agrees with it within 1 %
+                        // (time stamps are rounded to ns); otherwise the stream's.
+                        let setup_ns = self.setup_dt_s * 1e9;
+                        let dt = if (dt - setup_ns).abs() <= 0.01 * setup_ns {
+                            setup_ns
+                        } else {
+                            dt
+                        };
                         self.dt_ns = Some(dt);
                         out.push(LiveItem::Rate(dt * 1e-9));
                     }
@@ -608,9 +621,11 @@ impl LiveAligner {
 
 /// What the stepper sends on.
 enum Stepped {
+    /// `late`: stepped after the warm-up wait (excluded from the latency figures).
     Sample {
         a: Aligned,
         out: Option<StepOutput>,
+        late: bool,
     },
     /// The buffered first segment and the setup at the stream's rate, for the final refit.
     Buffered {
@@ -711,29 +726,30 @@ fn stepper_stage(
     };
     let mut ok = true;
     let send = |m: Msg<Stepped>| tx.send(m).is_ok();
-    let step_one = |st: &mut StepperState, a: Aligned| -> Result<Msg<Stepped>, LiveError> {
-        if st.buffer_open {
-            if st.buffer.len() < buffer_samples {
-                st.buffer.samples.push(a.sample);
-                st.buffer.t_ns.push(a.t_ns);
-                st.buffer.excitation.push(a.excitation.clone());
-                st.buffer.response.push(a.response.clone());
-            } else {
-                st.buffer_open = false;
+    let step_one =
+        |st: &mut StepperState, a: Aligned, late: bool| -> Result<Msg<Stepped>, LiveError> {
+            if st.buffer_open {
+                if st.buffer.len() < buffer_samples {
+                    st.buffer.samples.push(a.sample);
+                    st.buffer.t_ns.push(a.t_ns);
+                    st.buffer.excitation.push(a.excitation.clone());
+                    st.buffer.response.push(a.response.clone());
+                } else {
+                    st.buffer_open = false;
+                }
             }
-        }
-        let Some(est) = st.est.as_mut() else {
-            return Ok(Msg::Data(Stepped::Sample { a, out: None }));
+            let Some(est) = st.est.as_mut() else {
+                return Ok(Msg::Data(Stepped::Sample { a, out: None, late }));
+            };
+            if !st.started {
+                est.start(a.sample, &a.excitation);
+                st.started = true;
+                return Ok(Msg::Data(Stepped::Sample { a, out: None, late }));
+            }
+            let done = est.step(a.sample, &a.excitation, &a.response, &mut st.out)?;
+            let out = done.then(|| st.out.clone());
+            Ok(Msg::Data(Stepped::Sample { a, out, late }))
         };
-        if !st.started {
-            est.start(a.sample, &a.excitation);
-            st.started = true;
-            return Ok(Msg::Data(Stepped::Sample { a, out: None }));
-        }
-        let done = est.step(a.sample, &a.excitation, &a.response, &mut st.out)?;
-        let out = done.then(|| st.out.clone());
-        Ok(Msg::Data(Stepped::Sample { a, out }))
-    };
     let build = |st: &mut StepperState| -> Result<(), LiveError> {
         let mut sigma: Vec<f64> = st
             .setup
@@ -797,13 +813,13 @@ fn stepper_stage(
                     if st.warmup.len() >= WARMUP_SAMPLES {
                         build(&mut st)?;
                         for a in std::mem::take(&mut st.warmup) {
-                            let m = step_one(&mut st, a)?;
+                            let m = step_one(&mut st, a, true)?;
                             ok &= send(m);
                         }
                     }
                     continue;
                 }
-                let m = step_one(&mut st, a)?;
+                let m = step_one(&mut st, a, false)?;
                 ok &= send(m);
             }
         }
@@ -814,7 +830,7 @@ fn stepper_stage(
             build(&mut st)?;
         }
         for a in std::mem::take(&mut st.warmup) {
-            let m = step_one(&mut st, a)?;
+            let m = step_one(&mut st, a, true)?;
             ok &= send(m);
         }
     }
@@ -828,7 +844,11 @@ fn stepper_stage(
                 excitation: Vec::new(),
                 response: Vec::new(),
             };
-            ok &= send(Msg::Data(Stepped::Sample { a, out: Some(out) }));
+            ok &= send(Msg::Data(Stepped::Sample {
+                a,
+                out: Some(out),
+                late: true,
+            }));
         }
     }
     if ok {
@@ -848,6 +868,7 @@ enum Refitted {
     Sample {
         a: Aligned,
         out: Option<StepOutput>,
+        late: bool,
     },
     Parameters {
         sample: u64,
@@ -912,7 +933,7 @@ fn refitter_stage(
             continue;
         }
         match item {
-            Stepped::Sample { a, out } => {
+            Stepped::Sample { a, out, late } => {
                 if let Some(o) = &out {
                     acc.push(o);
                     since += 1;
@@ -920,7 +941,7 @@ fn refitter_stage(
                 if a.t_ns != 0 || !a.excitation.is_empty() {
                     last = (a.sample, a.t_ns);
                 }
-                ok &= send(Msg::Data(Refitted::Sample { a, out }));
+                ok &= send(Msg::Data(Refitted::Sample { a, out, late }));
                 if refit_every > 0 && since >= refit_every {
                     since = 0;
                     match solve_online(&acc, setup, opts.max_condition) {
@@ -1091,6 +1112,7 @@ struct Sink<'a> {
     recorder: Option<RecordingWriter>,
     record_error: Option<String>,
     started: Option<Instant>,
+    last_at: Option<Instant>,
     first_t_ns: Option<u64>,
     last_progress: Instant,
     residual_values: Vec<f64>,
@@ -1113,7 +1135,7 @@ impl Sink<'_> {
         }
     }
 
-    fn sample(&mut self, a: Aligned, out: Option<StepOutput>) {
+    fn sample(&mut self, a: Aligned, out: Option<StepOutput>, late: bool) {
         if a.excitation.is_empty() {
             return; // a held-back estimate emitted at the end (none for filter-only)
         }
@@ -1122,6 +1144,7 @@ impl Sink<'_> {
         self.report.samples += 1;
         self.report.first_sample.get_or_insert(a.sample);
         self.report.last_sample = Some(a.sample);
+        self.last_at = Some(Instant::now());
         let (s, t) = (a.sample, a.t_ns);
         self.record(|w| {
             w.write_excitation(&Frame {
@@ -1145,7 +1168,9 @@ impl Sink<'_> {
                 values: self.residual_values.clone(),
             };
             Outputs::offer(&self.outputs.residuals, frame, &mut self.outputs.dropped);
-            self.latency.add((unix_ns() as f64 - t as f64) * 1e-3);
+            if !late {
+                self.latency.add(unix_ns().saturating_sub(t) as f64 * 1e-3);
+            }
             let every = self.opts.record_residuals_every.max(1) as u64;
             if self.recorder.is_some() && o.sample % every == 0 {
                 let v = |x: &nalgebra::DVector<f64>| x.iter().copied().collect::<Vec<f64>>();
@@ -1167,7 +1192,10 @@ impl Sink<'_> {
 
     fn snapshot(&self) -> LiveReport {
         let mut r = self.report.clone();
-        r.elapsed_s = self.started.map_or(0.0, |t| t.elapsed().as_secs_f64());
+        r.elapsed_s = match (self.started, self.last_at) {
+            (Some(a), Some(b)) => b.duration_since(a).as_secs_f64(),
+            _ => 0.0,
+        };
         r.samples_per_s = if r.elapsed_s > 0.0 {
             r.samples as f64 / r.elapsed_s
         } else {
@@ -1435,6 +1463,7 @@ pub fn run(
             recorder,
             record_error: None,
             started: None,
+            last_at: None,
             first_t_ns: None,
             last_progress: Instant::now(),
             residual_values: Vec::new(),
@@ -1450,7 +1479,7 @@ pub fn run(
                 };
             };
             match msg {
-                Msg::Data(Refitted::Sample { a, out }) => sink.sample(a, out),
+                Msg::Data(Refitted::Sample { a, out, late }) => sink.sample(a, out, late),
                 Msg::Data(Refitted::Parameters {
                     sample,
                     t_ns,

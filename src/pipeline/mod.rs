@@ -29,6 +29,7 @@
 //! matters to the identification; the only lossy edges are the outgoing iceoryx2
 //! publications to viewers (see [`live`]).
 
+pub mod acquire;
 pub mod live;
 pub mod replay;
 
