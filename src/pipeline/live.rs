@@ -325,6 +325,9 @@ fn live_source(
             ShmEvent::PublisherAppeared => {
                 present[k] = true;
                 ended[k] = false;
+                if !send(Msg::Data(SourceItem::Appeared(topics[k]))) {
+                    return Msg::Quit { error: None };
+                }
                 if !send(Msg::Data(SourceItem::Notice(format!(
                     "{} publisher appeared",
                     names[k]
@@ -387,6 +390,9 @@ pub struct LiveAligner {
     /// The first pair, held until the second gives the rate.
     held: Option<(u32, Aligned)>,
     pending_break: Option<String>,
+    /// A publisher (re)appeared on this stream: an index at or below the last one starts
+    /// a new run instead of counting as late.
+    appeared: [bool; 2],
     pub faults: FaultCounts,
     pub emitted: u64,
 }
@@ -409,12 +415,18 @@ impl LiveAligner {
             fixed_rate: rate_hz.is_some(),
             held: None,
             pending_break: None,
+            appeared: [false, false],
             faults: FaultCounts {
                 segments: 0,
                 ..FaultCounts::default()
             },
             emitted: 0,
         }
+    }
+
+    /// A publisher of `topic` (re)appeared (a restarted acquisition program).
+    pub fn publisher_appeared(&mut self, topic: InputTopic) {
+        self.appeared[topic_index(topic)] = true;
     }
 
     /// Accept one frame; returns the items to forward, or a fatal error.
@@ -434,8 +446,9 @@ impl LiveAligner {
                 self.n[k]
             ));
         }
+        let appeared = std::mem::take(&mut self.appeared[k]);
         if let Some(prev) = self.last_seen[k] {
-            if f.sample + RESTART_WINDOW < prev {
+            if f.sample + RESTART_WINDOW < prev || (appeared && f.sample <= prev) {
                 self.run[k] += 1;
                 out.push(LiveItem::Notice(format!(
                     "{name} sample index went back from {prev} to {}: a new acquisition run",
@@ -1407,6 +1420,7 @@ pub fn run(
                         }
                         Msg::Data(SourceItem::Warning(w)) => items.push(LiveItem::Warning(w)),
                         Msg::Data(SourceItem::Notice(n)) => items.push(LiveItem::Notice(n)),
+                        Msg::Data(SourceItem::Appeared(topic)) => al.publisher_appeared(topic),
                         end => break end,
                     }
                     for it in items.drain(..) {

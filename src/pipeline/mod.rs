@@ -77,8 +77,10 @@ pub enum SourceItem {
     /// A problem with the input that does not stop the stream (a truncated file, a
     /// publisher that vanished without end-of-stream); reported with the results.
     Warning(String),
-    /// Something worth telling that is not a problem (a publisher appeared).
+    /// Something worth telling that is not a problem.
     Notice(String),
+    /// A publisher of this stream (re)appeared: its next frame may start a new run.
+    Appeared(InputTopic),
 }
 
 /// One aligned sample: excitation and response of the same sample index, in setup
