@@ -77,7 +77,7 @@ fn params_of(v: &Value) -> Vec<(String, f64)> {
         .iter()
         .map(|p| {
             (
-                format!("{}", p["basis"].as_str().unwrap()),
+                p["basis"].as_str().unwrap().to_string(),
                 p["value"].as_f64().unwrap(),
             )
         })

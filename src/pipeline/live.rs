@@ -569,7 +569,7 @@ impl LiveAligner {
                         let dt = if (dt - setup_ns).abs() <= 0.01 * setup_ns {
                             setup_ns
                         } else {
-                            dt
+                            1e9 / snap_rate_hz(dt)
                         };
                         self.dt_ns = Some(dt);
                         out.push(LiveItem::Rate(dt * 1e-9));
@@ -627,6 +627,31 @@ impl LiveAligner {
         out.push(LiveItem::Sample(a));
         Ok(())
     }
+}
+
+/// The sampling rate behind one measured interval of whole-ns time stamps. A stamp is
+/// rounded to 1 ns, so 1/51200 s arrives as 19531 or 19532 ns; the true rate lies in
+/// `1e9/(dt ± 1)`. Acquisition rates are whole Hz and usually round numbers, so the
+/// whole-Hz rate in that range with the most trailing decimal zeros is taken (ties: the
+/// closest). `--rate` makes it exact.
+pub fn snap_rate_hz(dt_ns: f64) -> f64 {
+    let (lo, hi) = (1e9 / (dt_ns + 1.0), 1e9 / (dt_ns - 1.0).max(0.5));
+    let mid = 1e9 / dt_ns;
+    let zeros = |mut r: u64| {
+        let mut z = 0;
+        while r > 0 && r.is_multiple_of(10) {
+            r /= 10;
+            z += 1;
+        }
+        z
+    };
+    (lo.ceil() as u64..=hi.floor() as u64)
+        .max_by(|&a, &b| {
+            zeros(a)
+                .cmp(&zeros(b))
+                .then((b as f64 - mid).abs().total_cmp(&(a as f64 - mid).abs()))
+        })
+        .map_or(mid, |r| r as f64)
 }
 
 // ---------------------------------------------------------------------------------------
@@ -1305,7 +1330,7 @@ impl Sink<'_> {
 }
 
 fn open_recorder(
-    path: &PathBuf,
+    path: &std::path::Path,
     setup: &Setup,
 ) -> Result<RecordingWriter, crate::io::mcap::McapIoError> {
     let mut w = RecordingWriter::create(path, crate::io::FrameEncoding::Binary)?;
@@ -1776,6 +1801,14 @@ mod tests {
         assert_eq!(samples(&out), want);
         assert_eq!(al.faults.restarts, 1);
         assert_eq!(al.faults.segments, 2);
+    }
+
+    #[test]
+    fn measured_rates_snap_to_the_acquisition_rate() {
+        assert_eq!(snap_rate_hz(19531.0), 51200.0);
+        assert_eq!(snap_rate_hz(19532.0), 51200.0);
+        assert_eq!(snap_rate_hz(22676.0), 44100.0);
+        assert_eq!(snap_rate_hz(100_000.0), 10_000.0);
     }
 
     #[test]
