@@ -194,3 +194,77 @@ fn killed_publisher_is_reported_and_a_restarted_one_picked_up() {
     assert!(r["samples"].as_u64().unwrap() > 2000, "{}", r["samples"]);
     assert_eq!(r["ended"], "end-of-stream");
 }
+
+#[test]
+fn two_sessions_on_one_prefix_stay_apart_and_a_stalled_viewer_costs_no_input() {
+    use jointid::io::shm::{FrameSubscriber, ShmOptions};
+    let p = prefix("two");
+    let live_a = spawn_live(&p, &["--session", "a", "--buffer-samples", "0"]);
+    let live_b = spawn_live(&p, &["--session", "b", "--buffer-samples", "0"]);
+    // A viewer of session a's residuals that connects and never reads.
+    let viewer_opts = ShmOptions {
+        session: "a".into(),
+        global_prefix: Some(p.clone()),
+        ..ShmOptions::default()
+    };
+    let t0 = Instant::now();
+    let mut viewer = loop {
+        // The service exists once live has started its publishers.
+        if let Ok(v) = FrameSubscriber::new(&viewer_opts, "residuals")
+            && v.publisher_count() > 0
+        {
+            break v;
+        }
+        assert!(
+            t0.elapsed() < Duration::from_secs(30),
+            "live a did not start"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_eq!(viewer.try_recv().unwrap(), None); // connect, then stop reading
+    let a = acquire(
+        &p,
+        &[
+            "--session",
+            "a",
+            "--samples",
+            "30000",
+            "--as-fast-as-possible",
+        ],
+    )
+    .spawn()
+    .unwrap();
+    let b = acquire(&p, &["--session", "b", "--samples", "3000", "--seed", "4"])
+        .spawn()
+        .unwrap();
+    for acq in [a, b] {
+        let o = finish(acq, Duration::from_secs(60));
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let ra = report(&finish(live_a, Duration::from_secs(60)));
+    let rb = report(&finish(live_b, Duration::from_secs(60)));
+    // Each session saw exactly its own stream.
+    assert_eq!(
+        (ra["samples"].as_u64(), ra["last_sample"].as_u64()),
+        (Some(30000), Some(29999))
+    );
+    assert_eq!(
+        (rb["samples"].as_u64(), rb["last_sample"].as_u64()),
+        (Some(3000), Some(2999))
+    );
+    for r in [&ra, &rb] {
+        for k in [
+            "missing_samples",
+            "late_or_duplicate",
+            "unpaired",
+            "transport_drops",
+        ] {
+            assert_eq!(r["faults"][k], 0, "{k}");
+        }
+    }
+    // The viewer's buffer (8192) filled: the rest was discarded for it and counted,
+    // while every input sample was processed.
+    assert!(ra["viewer_discards"].as_u64().unwrap() > 0, "{ra}");
+    assert_eq!(rb["viewer_discards"], 0);
+    drop(viewer);
+}

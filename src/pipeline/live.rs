@@ -209,6 +209,9 @@ pub struct LiveReport {
     pub latency: LatencyStats,
     pub faults: FaultCounts,
     pub outputs_dropped: u64,
+    /// Output frames our publishers discarded for a stalled viewer (bounded backpressure:
+    /// a viewer that does not read never slows the pipeline).
+    pub viewer_discards: u64,
     pub refits: u64,
     pub online_parameters: Vec<LiveParameter>,
     /// The final batch identification over the buffered first segment.
@@ -1642,7 +1645,7 @@ pub fn run(
         ("diagnostics", pub_dia),
     ] {
         match h.join() {
-            Ok(Ok(_)) => {}
+            Ok(Ok(s)) => report.viewer_discards += s.backpressure_discards,
             Ok(Err(e)) => report.warnings.push(format!("{name} publisher: {e}")),
             Err(p) => report.warnings.push(panic_message(name, p)),
         }
