@@ -268,3 +268,47 @@ fn two_sessions_on_one_prefix_stay_apart_and_a_stalled_viewer_costs_no_input() {
     assert_eq!(rb["viewer_discards"], 0);
     drop(viewer);
 }
+
+#[test]
+fn sigterm_drains_the_stages_and_finalises_the_recording() {
+    let p = prefix("term");
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("stopped.mcap");
+    let live = spawn_live(
+        &p,
+        &["--record", rec.to_str().unwrap(), "--buffer-samples", "0"],
+    );
+    let mut acq = acquire(&p, &["--samples", "100000", "--substeps", "1"])
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(2500));
+    let status = Command::new("kill")
+        .args(["-TERM", &live.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let r = report(&finish(live, Duration::from_secs(30)));
+    let _ = acq.kill();
+    let _ = acq.wait();
+    assert_eq!(r["ended"], "stopped");
+    let n = r["samples"].as_u64().unwrap();
+    assert!(n > 0 && n < 100_000, "{n}");
+    // The recording was finalised (renamed from .partial) and holds every processed sample.
+    assert!(rec.exists(), "recording not finalised");
+    assert!(!jointid::io::mcap::partial_path(&rec).exists());
+    let inspect = Command::new(JOINTID)
+        .arg("inspect")
+        .arg(&rec)
+        .arg("--json")
+        .output()
+        .unwrap();
+    assert!(
+        inspect.status.success(),
+        "{}",
+        String::from_utf8_lossy(&inspect.stdout)
+    );
+    let i: Value = serde_json::from_slice(&inspect.stdout).unwrap();
+    assert_eq!(i["excitation_frames"].as_u64(), Some(n));
+    assert_eq!(i["response_frames"].as_u64(), Some(n));
+    assert!(i["damage"].is_null());
+}

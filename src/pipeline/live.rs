@@ -219,8 +219,8 @@ pub struct LiveReport {
     pub final_identification: Option<Identification>,
     pub final_samples: usize,
     pub warnings: Vec<String>,
-    /// Why the stream ended: "end-of-stream", "sample limit", "time limit", "stopped",
-    /// "idle", or the fatal error.
+    /// Why the stream ended: "end-of-stream", "sample limit", "time limit", "stopped"
+    /// (Ctrl-C/SIGTERM), "idle", or "error: …" with the fatal error.
     pub ended: String,
     pub error: Option<String>,
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -265,7 +265,7 @@ fn live_source(
     limit_reached: &AtomicBool,
     max_seconds: Option<f64>,
     idle_timeout: Duration,
-) -> Msg<SourceItem> {
+) -> (Msg<SourceItem>, &'static str) {
     let names = ["excitation", "response"];
     let topics = [InputTopic::Excitation, InputTopic::Response];
     let mut ended = [false, false];
@@ -275,15 +275,15 @@ fn live_source(
     let send = |m: Msg<SourceItem>| tx.send(m).is_ok();
     loop {
         if stop.load(Ordering::Acquire) {
-            return Msg::Quit { error: None };
+            return (Msg::Quit { error: None }, "stopped");
         }
         if limit_reached.load(Ordering::Acquire) {
-            return Msg::Flush;
+            return (Msg::Flush, "sample limit");
         }
         if let (Some(t0), Some(s)) = (first_frame, max_seconds)
             && t0.elapsed().as_secs_f64() >= s
         {
-            return Msg::Flush;
+            return (Msg::Flush, "time limit");
         }
         if let Some(t) = vanished_since
             && !present[0]
@@ -294,7 +294,7 @@ fn live_source(
                 "no publisher for {:.1} s after one vanished without end-of-stream: ending the session",
                 idle_timeout.as_secs_f64()
             ))));
-            return Msg::Flush;
+            return (Msg::Flush, "idle");
         }
         let (k, ev) = select! {
             recv(rx[0]) -> ev => (0, ev),
@@ -302,9 +302,12 @@ fn live_source(
             default(Duration::from_millis(20)) => continue,
         };
         let Ok(ev) = ev else {
-            return Msg::Quit {
-                error: Some(format!("the {} subscriber thread ended", names[k])),
-            };
+            return (
+                Msg::Quit {
+                    error: Some(format!("the {} subscriber thread ended", names[k])),
+                },
+                "error",
+            );
         };
         match ev {
             ShmEvent::Frame(f) => {
@@ -312,7 +315,7 @@ fn live_source(
                 if f.values.is_empty() {
                     ended[k] = true;
                     if ended[0] && ended[1] {
-                        return Msg::Flush;
+                        return (Msg::Flush, "end-of-stream");
                     }
                     continue;
                 }
@@ -322,20 +325,20 @@ fn live_source(
                     values: f.values,
                 };
                 if !send(Msg::Data(SourceItem::Frame(topics[k], frame))) {
-                    return Msg::Quit { error: None };
+                    return (Msg::Quit { error: None }, "stopped");
                 }
             }
             ShmEvent::PublisherAppeared => {
                 present[k] = true;
                 ended[k] = false;
                 if !send(Msg::Data(SourceItem::Appeared(topics[k]))) {
-                    return Msg::Quit { error: None };
+                    return (Msg::Quit { error: None }, "stopped");
                 }
                 if !send(Msg::Data(SourceItem::Notice(format!(
                     "{} publisher appeared",
                     names[k]
                 )))) {
-                    return Msg::Quit { error: None };
+                    return (Msg::Quit { error: None }, "stopped");
                 }
             }
             ShmEvent::PublisherGone => {
@@ -347,13 +350,13 @@ fn live_source(
                         names[k],
                         idle_timeout.as_secs_f64()
                     )))) {
-                        return Msg::Quit { error: None };
+                        return (Msg::Quit { error: None }, "stopped");
                     }
                 }
             }
             ShmEvent::Error(e) => {
                 if !send(Msg::Data(SourceItem::Warning(format!("{}: {e}", names[k])))) {
-                    return Msg::Quit { error: None };
+                    return (Msg::Quit { error: None }, "stopped");
                 }
             }
         }
@@ -1407,7 +1410,7 @@ pub fn run(
         let source = thread::Builder::new()
             .name("live-source".into())
             .spawn_scoped(scope, move || {
-                let end = live_source(
+                let (end, why) = live_source(
                     [e_rx, r_rx],
                     src_tx.clone(),
                     &opts.stop,
@@ -1416,6 +1419,7 @@ pub fn run(
                     opts.idle_timeout,
                 );
                 let _ = src_tx.send(end);
+                why
             })
             .map_err(|e| LiveError::Pipeline(e.to_string()))?;
         let aligner = thread::Builder::new()
@@ -1571,6 +1575,7 @@ pub fn run(
         };
         // Join the stages (they have all sent their end by now).
         let src = source.join().map_err(|p| panic_message("source", p));
+        let src_why = src.clone().unwrap_or("error");
         let faults = aligner.join().map_err(|p| panic_message("align", p));
         let step = stepper.join().map_err(|p| panic_message("stepper", p));
         let refit = refitter.join().map_err(|p| panic_message("refit", p));
@@ -1589,23 +1594,7 @@ pub fn run(
         sink.report.ended = match (&end, &step_err) {
             (_, Some(e)) => format!("error: {e}"),
             (Msg::Quit { error: Some(e) }, _) => format!("error: {e}"),
-            (Msg::Quit { error: None }, _) => "stopped".into(),
-            _ => {
-                if opts.max_samples.is_some_and(|m| sink.report.samples >= m) {
-                    "sample limit".into()
-                } else if sink
-                    .report
-                    .warnings
-                    .iter()
-                    .any(|w| w.starts_with("no publisher for"))
-                {
-                    "idle".into()
-                } else if opts.max_seconds.is_some() && !sink.report.warnings.is_empty() {
-                    "time limit or end-of-stream".into()
-                } else {
-                    "end-of-stream".into()
-                }
-            }
+            _ => src_why.to_string(),
         };
         sink.report.error = match (&end, step_err) {
             (_, Some(e)) => Some(e.to_string()),
