@@ -71,6 +71,30 @@ fn report(out: &Output) -> Value {
     serde_json::from_slice(&out.stdout).expect("live --json prints one JSON object")
 }
 
+/// Blocks until `n` excitation frames of `session` have been published (seen by a
+/// subscriber of our own), so timing-dependent steps do not depend on machine load.
+fn wait_for_frames(prefix: &str, session: &str, n: u64) {
+    use jointid::io::shm::{FrameSubscriber, ShmOptions};
+    let o = ShmOptions {
+        session: session.into(),
+        global_prefix: Some(prefix.into()),
+        ..ShmOptions::default()
+    };
+    let mut sub = FrameSubscriber::new(&o, "excitation").unwrap();
+    let t0 = Instant::now();
+    let mut seen = 0;
+    while seen < n {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "only {seen} frames seen"
+        );
+        let _ = sub.wait(Duration::from_millis(50));
+        while sub.try_recv().unwrap().is_some() {
+            seen += 1;
+        }
+    }
+}
+
 fn params_of(v: &Value) -> Vec<(String, f64)> {
     v.as_array()
         .unwrap()
@@ -164,7 +188,7 @@ fn killed_publisher_is_reported_and_a_restarted_one_picked_up() {
     let mut first = acquire(&p, &["--samples", "200000", "--substeps", "1"])
         .spawn()
         .unwrap();
-    std::thread::sleep(Duration::from_millis(2500));
+    wait_for_frames(&p, "default", 6000);
     first.kill().unwrap();
     let _ = first.wait();
     // The restarted program starts again at sample 0 and ends cleanly.
@@ -281,7 +305,7 @@ fn sigterm_drains_the_stages_and_finalises_the_recording() {
     let mut acq = acquire(&p, &["--samples", "100000", "--substeps", "1"])
         .spawn()
         .unwrap();
-    std::thread::sleep(Duration::from_millis(2500));
+    wait_for_frames(&p, "default", 3000);
     let status = Command::new("kill")
         .args(["-TERM", &live.id().to_string()])
         .status()
