@@ -147,7 +147,7 @@ enum Command {
         #[arg(long, default_value_t = 10.0)]
         idle_timeout: f64,
         /// Samples of the first segment kept for the final batch identification (0: none).
-        #[arg(long, default_value_t = 200_000)]
+        #[arg(long, default_value_t = 20_000)]
         buffer_samples: usize,
         /// Record every k-th residual (1: all).
         #[arg(long, default_value_t = 1)]
