@@ -149,6 +149,10 @@ enum Command {
         /// Samples of the first segment kept for the final batch identification (0: none).
         #[arg(long, default_value_t = 20_000)]
         buffer_samples: usize,
+        /// Tune the online Kalman filter by likelihood over the warm-up samples (better
+        /// online values; stalls the stepper ~0.3 s once, see README).
+        #[arg(long)]
+        tune_warmup: bool,
         /// Record every k-th residual (1: all).
         #[arg(long, default_value_t = 1)]
         record_residuals_every: usize,
@@ -314,6 +318,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             idle_timeout,
             buffer_samples,
             record_residuals_every,
+            tune_warmup,
             json,
         } => {
             let s = Setup::from_file(&setup)?;
@@ -335,6 +340,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             o.record = record;
             o.buffer_samples = buffer_samples;
             o.record_residuals_every = record_residuals_every;
+            o.tune_warmup = tune_warmup;
             live(&s, o, json)
         }
         Command::Inspect { recording, json } => {
