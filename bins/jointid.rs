@@ -8,7 +8,11 @@ use anyhow::{Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use jointid::app::{self, Progress, ReplayOutcome, ReplayRequest};
+use std::sync::Arc;
+
 use jointid::io::FrameEncoding;
+use jointid::io::shm::ShmOptions;
+use jointid::pipeline::live::{self, LiveOptions, LiveReport};
 use jointid::setup::{EstimatorKind, Setup};
 use jointid::simulate::{Noise, Scenario, SimulateOptions};
 
@@ -126,6 +130,54 @@ enum Command {
         /// Output directory (created).
         #[arg(long)]
         out: PathBuf,
+    },
+    /// Identify live from iceoryx2 excitation/response streams (see README "Live (iceoryx2)").
+    #[command(
+        after_help = "Example:\n  jointid live --setup recordings/two-beam-friction.toml --record session.mcap\n  (then, in another terminal: acquire-sim --setup recordings/two-beam-friction.toml --rate 51200 --seconds 60)"
+    )]
+    Live {
+        #[arg(long)]
+        setup: PathBuf,
+        /// Record the aligned inputs, residuals, parameters and diagnostics (MCAP).
+        #[arg(long)]
+        record: Option<PathBuf>,
+        /// Online estimator: kalman (filter only, default) or paper.
+        #[arg(long, value_enum)]
+        estimator: Option<EstimatorArg>,
+        /// iceoryx2 global prefix (isolates sessions and test runs).
+        #[arg(long)]
+        prefix: Option<String>,
+        /// Session name, the first element of every service name.
+        #[arg(long, default_value = "default")]
+        session: String,
+        /// Publish the online fit every N samples.
+        #[arg(long, default_value_t = 10_000)]
+        refit_every: usize,
+        /// Stop after this many aligned samples.
+        #[arg(long)]
+        samples: Option<u64>,
+        /// Stop this many seconds after the first frame.
+        #[arg(long)]
+        seconds: Option<f64>,
+        /// Sampling rate, Hz (default: measured from the stream).
+        #[arg(long)]
+        rate: Option<f64>,
+        /// End this long (s) after a publisher vanished without end-of-stream and none came back.
+        #[arg(long, default_value_t = 10.0)]
+        idle_timeout: f64,
+        /// Samples of the first segment kept for the final batch identification (0: none).
+        #[arg(long, default_value_t = 20_000)]
+        buffer_samples: usize,
+        /// Tune the online Kalman filter by likelihood over the warm-up samples (better
+        /// online values; stalls the stepper ~0.3 s once, see README).
+        #[arg(long)]
+        tune_warmup: bool,
+        /// Record every k-th residual (1: all).
+        #[arg(long, default_value_t = 1)]
+        record_residuals_every: usize,
+        /// Print one JSON report at the end instead of the progress line and table.
+        #[arg(long)]
+        json: bool,
     },
     /// Summarise a recording: channels, samples, setup, truth, damage.
     Inspect {
@@ -286,6 +338,44 @@ fn run(cli: Cli) -> Result<ExitCode> {
             }
             Ok(ExitCode::SUCCESS)
         }
+        Command::Live {
+            setup,
+            record,
+            estimator,
+            prefix,
+            session,
+            refit_every,
+            samples,
+            seconds,
+            rate,
+            idle_timeout,
+            buffer_samples,
+            record_residuals_every,
+            tune_warmup,
+            json,
+        } => {
+            let s = Setup::from_file(&setup)?;
+            let shm = ShmOptions {
+                session,
+                global_prefix: prefix,
+                ..ShmOptions::default()
+            };
+            let mut o = LiveOptions::new(shm);
+            o.estimator = match estimator {
+                Some(EstimatorArg::Paper) => EstimatorKind::Paper,
+                _ => EstimatorKind::Kalman,
+            };
+            o.refit_every = refit_every;
+            o.max_samples = samples;
+            o.max_seconds = seconds;
+            o.rate_hz = rate;
+            o.idle_timeout = std::time::Duration::from_secs_f64(idle_timeout.max(0.0));
+            o.record = record;
+            o.buffer_samples = buffer_samples;
+            o.record_residuals_every = record_residuals_every;
+            o.tune_warmup = tune_warmup;
+            live(&s, o, json)
+        }
         Command::Inspect { recording, json } => {
             let i = app::inspect(&recording)?;
             if json {
@@ -335,6 +425,99 @@ fn run(cli: Cli) -> Result<ExitCode> {
             })
         }
     }
+}
+
+/// Runs a live session; the main thread watches for Ctrl-C/SIGTERM through an iceoryx2
+/// node with termination handling (no extra signal crate) and sets the stop flag.
+fn live(setup: &Setup, o: LiveOptions, json: bool) -> Result<ExitCode> {
+    use iceoryx2::prelude::*;
+    let config = o.shm.iceoryx_config()?;
+    let node = NodeBuilder::new()
+        .config(&config)
+        .signal_handling_mode(SignalHandlingMode::HandleTerminationRequests)
+        .create::<ipc::Service>()
+        .map_err(|e| anyhow::anyhow!("iceoryx2 node for signal handling: {e:?}"))?;
+    let stop = Arc::clone(&o.stop);
+    let setup = setup.clone();
+    let worker = std::thread::spawn(move || {
+        let mut progress = |r: &LiveReport| {
+            if !json {
+                eprint!("\r\x1b[2K{}", progress_line(r));
+            }
+        };
+        live::run(&setup, &o, &mut progress)
+    });
+    while !worker.is_finished() {
+        if node.wait(std::time::Duration::from_millis(50)).is_err() {
+            stop.store(true, std::sync::atomic::Ordering::Release);
+        }
+    }
+    let report = worker
+        .join()
+        .map_err(|_| anyhow::anyhow!("the live session panicked"))??;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        eprintln!();
+        for w in &report.warnings {
+            println!("warning: {w}");
+        }
+        println!("{}", progress_line(&report));
+        println!("ended: {}", report.ended);
+        let f = &report.faults;
+        println!(
+            "faults: {} missing in {} gaps, {} late/duplicate, {} unpaired, {} non-finite, {} restarts, {} segments, {} transport drops, {} outputs dropped",
+            f.missing_samples,
+            f.gaps,
+            f.late_or_duplicate,
+            f.unpaired,
+            f.non_finite,
+            f.restarts,
+            f.segments,
+            f.transport_drops,
+            report.outputs_dropped
+        );
+        let kind = if report.final_identification.is_some() {
+            format!(
+                "batch identification over the first {} samples",
+                report.final_samples
+            )
+        } else {
+            "online fit".into()
+        };
+        println!("final parameters ({kind}):");
+        for p in report.final_parameters() {
+            println!("  {:<24} {:>14.6e} ± {:.3e}", p.key, p.value, p.std_error);
+        }
+        if let Some(r) = &report.recording {
+            println!("recorded to {}", r.display());
+        }
+    }
+    if let Some(e) = &report.error {
+        anyhow::bail!("{e}");
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn progress_line(r: &LiveReport) -> String {
+    let params: Vec<String> = r
+        .online_parameters
+        .iter()
+        .map(|p| format!("{} {:.4e}±{:.1e}", p.key, p.value, p.std_error))
+        .collect();
+    format!(
+        "{} samples | {:.0} samples/s | RTF {:.2} | latency p50 {:.0} µs p99 {:.0} µs max {:.0} µs | missing {} late {} dropped-out {} | {}",
+        r.samples,
+        r.samples_per_s,
+        r.real_time_factor,
+        r.latency.median_us,
+        r.latency.p99_us,
+        r.latency.max_us,
+        r.faults.missing_samples,
+        r.faults.late_or_duplicate,
+        r.outputs_dropped,
+        params.join(", ")
+    )
 }
 
 fn print_table(o: &ReplayOutcome) {

@@ -8,9 +8,9 @@ use std::path::{Path, PathBuf};
 use serde::Serialize;
 use serde_json::json;
 
-use crate::align::{AlignError, align};
+use crate::align::AlignError;
 use crate::estimate::StepOutput;
-use crate::identify::{Identification, IdentifyOptions, PassReport, identify};
+use crate::identify::{Identification, PassReport};
 use crate::io::mcap::{
     ChannelInfo, DIAGNOSTICS_TOPIC, McapIoError, PARAMETERS_TOPIC, RECORDING_METADATA,
     RESIDUALS_TOPIC, RecordingWriter, STATES_TOPIC, TRACK_TOPIC, TRUTH_METADATA, stream_frames,
@@ -43,6 +43,8 @@ pub enum AppError {
         expected: Vec<String>,
         got: Vec<String>,
     },
+    #[error("{msg}")]
+    Pipeline { msg: String },
     #[error("{path}: only {samples} usable samples before: {cause}")]
     TooLittleData {
         path: PathBuf,
@@ -238,160 +240,14 @@ pub enum Progress<'a> {
     Pass(&'a PassReport),
 }
 
-/// Replay a recording through the identification (Steps I–VI) and write the results.
+/// Replay a recording through the identification (Steps I–VI) and write the results. The
+/// work runs through the pipeline stages (source → aligner → identification → sink, see
+/// [`crate::pipeline::replay`]); the numbers are those of [`identify`] over the aligned data.
 pub fn replay(
     req: &ReplayRequest,
     progress: &mut dyn FnMut(Progress<'_>),
 ) -> Result<ReplayOutcome, AppError> {
-    let path = req.recording.clone();
-    let mut stream = stream_frames(&path)?;
-    let header = stream.header.clone();
-    let setup = match &req.setup {
-        Some(p) => Setup::from_file(p)?,
-        None => {
-            let text = header
-                .setup_toml
-                .clone()
-                .ok_or(AppError::NoSetup { path: path.clone() })?;
-            Setup::from_toml(&text, &format!("{} (attached setup.toml)", path.display()))?
-        }
-    };
-    let exc = excitation_channels(&setup);
-    let resp = response_channels(&setup);
-    for (topic, want, got) in [
-        ("excitation", &exc.names, &header.excitation_channels.names),
-        ("response", &resp.names, &header.response_channels.names),
-    ] {
-        if want != got {
-            return Err(AppError::ChannelNames {
-                path: path.clone(),
-                topic,
-                expected: want.clone(),
-                got: got.clone(),
-            });
-        }
-    }
-    // Read every frame; an error ends the data there but keeps what came before.
-    let mut excitation = Vec::new();
-    let mut response = Vec::new();
-    let mut input_error: Option<String> = None;
-    for item in stream.by_ref() {
-        match item {
-            Ok((crate::io::mcap::InputTopic::Excitation, f)) => excitation.push(f),
-            Ok((crate::io::mcap::InputTopic::Response, f)) => response.push(f),
-            Err(e) => {
-                input_error = Some(e.to_string());
-                break;
-            }
-        }
-    }
-    let mut input_warnings = Vec::new();
-    if let Some(d) = stream.damage() {
-        input_warnings.push(format!("{}: {d}", path.display()));
-    }
-    let (data, align_err) = align(
-        &excitation,
-        &response,
-        exc.names.len(),
-        resp.names.len(),
-        setup.dt_s,
-    );
-    if let Some(e) = align_err {
-        // A ragged end (one topic one frame longer) after truncation or an error is expected.
-        let cut = input_error.is_some() || stream.damage().is_some();
-        let ragged = matches!(e, AlignError::Unpaired { .. }) && cut;
-        if !ragged && input_error.is_none() {
-            input_error = Some(format!("{}: {e}", path.display()));
-        }
-    }
-    drop(excitation);
-    drop(response);
-    if data.len() < 3 {
-        return Err(AppError::TooLittleData {
-            path: path.clone(),
-            samples: data.len(),
-            cause: input_error.unwrap_or_else(|| "the recording is empty".into()),
-        });
-    }
-    let mut opts = IdentifyOptions::from_setup(&setup);
-    if let Some(p) = req.passes {
-        opts.passes = p.max(1);
-    }
-    if let Some(k) = req.estimator {
-        opts.estimator = k;
-    }
-    if let Some(l) = req.forgetting {
-        if !(l > 0.0 && l <= 1.0) {
-            return Err(AppError::BadOption {
-                option: "--forgetting",
-                reason: format!("must be in (0, 1] (memory 1/(1 − λ) samples), got {l}"),
-            });
-        }
-        opts.forgetting = l;
-    }
-    if let Some(n) = req.track_every {
-        opts.track_every = n;
-    }
-    let keys = setup.param_keys();
-    let truth: Option<Vec<f64>> =
-        if keys.iter().all(|k| header.truth.contains_key(k)) && !header.truth.is_empty() {
-            Some(keys.iter().map(|k| header.truth[k]).collect())
-        } else {
-            None
-        };
-    progress(Progress::Start {
-        samples: data.len(),
-        passes: opts.passes,
-    });
-    // Keep the per-sample estimates of the latest pass for the output file.
-    let mut last_pass: Vec<(usize, StepOutput)> = Vec::new();
-    let mut current_pass = 0usize;
-    let mut current: Vec<StepOutput> = Vec::with_capacity(data.len());
-    let progress = std::cell::RefCell::new(progress);
-    let result = identify(
-        &setup,
-        &data,
-        &opts,
-        truth.as_deref(),
-        &mut |r| (progress.borrow_mut())(Progress::Pass(r)),
-        &mut |pass, o| {
-            if pass != current_pass {
-                current.clear();
-                current_pass = pass;
-            }
-            current.push(o.clone());
-            if current.len().is_multiple_of(4096) {
-                (progress.borrow_mut())(Progress::Samples {
-                    pass,
-                    done: current.len(),
-                });
-            }
-        },
-    );
-    let identification = result.map_err(|source| AppError::Identify {
-        path: path.clone(),
-        source,
-    })?;
-    // The outputs of the last *reported* pass: if a later pass failed half-way its samples
-    // are dropped, the reported pass's are kept.
-    if let Some(last) = identification.passes.last()
-        && last.pass == current_pass
-    {
-        last_pass = current.drain(..).map(|o| (current_pass, o)).collect();
-    }
-    let mut outcome = ReplayOutcome {
-        recording: path.clone(),
-        samples: data.len(),
-        identification,
-        input_warnings,
-        input_error,
-        output: None,
-    };
-    if let Some(out) = &req.out {
-        write_results(out, &setup, &header, &data, &outcome, &last_pass)?;
-        outcome.output = Some(out.clone());
-    }
-    Ok(outcome)
+    crate::pipeline::replay::run(req, progress)
 }
 
 /// JSON Schemas of the output topics, so Foxglove and other tools can read them.
@@ -457,7 +313,7 @@ fn diagnostics_schema() -> serde_json::Value {
     json!({"type": "object", "title": "jointid.Diagnostics"})
 }
 
-fn write_results(
+pub(crate) fn write_results(
     out: &Path,
     setup: &Setup,
     header: &crate::io::mcap::RecordingHeader,

@@ -25,6 +25,7 @@
 //! - [`track`]: parameters as they change during a test (forgetting, periodic solves).
 //! - [`align`]: joins excitation and response frames, checks gaps and values.
 //! - [`io`]: MCAP recordings (the data contract is in the module docs and the README).
+//! - [`pipeline`]: source → aligner → stepper → refitter → sinks on threads (replay and live).
 //! - [`app`]: what the command line does.
 pub mod align;
 pub mod app;
@@ -34,6 +35,7 @@ pub mod integrate;
 pub mod io;
 pub mod matrix_market;
 pub mod model;
+pub mod pipeline;
 pub mod setup;
 pub mod simulate;
 pub mod track;

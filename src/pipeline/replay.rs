@@ -1,0 +1,301 @@
+//! `jointid replay` through the pipeline stages: **MCAP source → strict aligner →
+//! identification stage → sink** (the calling thread: progress, the last pass's per-sample
+//! outputs, then the results file).
+//!
+//! # Why the passes run over buffered data
+//!
+//! The identification stage buffers the aligned samples and runs
+//! [`crate::identify::identify`] when the stream has ended. Even the first pass cannot
+//! stream for the default Kalman estimator: its channel noise levels are estimated from
+//! the whole record's high-order differences, its random-walk and noise scale are tuned by
+//! the innovation likelihood of whole-record filter runs, and its smoother runs backwards
+//! from the last sample. Passes 2… need the whole record anyway. Running exactly
+//! `identify` over exactly the aligned data keeps the numbers identical (bit for bit) to
+//! the replay before the pipeline existed, which `tests/live_pipeline.rs` checks on the
+//! shipped recordings. The live path ([`super::live`]) streams its first pass through a
+//! filter-only estimator instead and uses the same buffered identification for its final
+//! refit.
+
+use std::path::{Path, PathBuf};
+use std::thread;
+
+use crossbeam_channel::bounded;
+
+use super::{AlignedItem, CHANNEL_CAPACITY, Msg, SourceItem, panic_message, strict_align_stage};
+use crate::align::{AlignError, Aligner};
+use crate::app::{
+    AppError, Progress, ReplayOutcome, ReplayRequest, excitation_channels, response_channels,
+};
+use crate::estimate::StepOutput;
+use crate::identify::{
+    Identification, IdentifyError, IdentifyOptions, PassReport, TestData, identify,
+};
+use crate::io::mcap::{FrameStream, RecordingHeader, stream_frames};
+use crate::setup::Setup;
+
+/// What the identification stage sends to the sink.
+enum StageOut {
+    Start { samples: usize, passes: usize },
+    Sample(usize, StepOutput),
+    Pass(Box<PassReport>),
+}
+
+/// What the identification stage returns when joined.
+struct StageResult {
+    data: TestData,
+    input_warnings: Vec<String>,
+    input_error: Option<String>,
+    identification: Result<Identification, IdentifyError>,
+}
+
+/// The MCAP source stage: every frame in log-time order, then a warning if the file was
+/// truncated, then `Flush` (clean end) or `Quit` with the read error.
+fn mcap_source(
+    mut stream: FrameStream,
+    path: PathBuf,
+    tx: crossbeam_channel::Sender<Msg<SourceItem>>,
+) {
+    let mut end = Msg::Flush;
+    for item in stream.by_ref() {
+        match item {
+            Ok((topic, f)) => {
+                if tx.send(Msg::Data(SourceItem::Frame(topic, f))).is_err() {
+                    return;
+                }
+            }
+            Err(e) => {
+                end = Msg::Quit {
+                    error: Some(e.to_string()),
+                };
+                break;
+            }
+        }
+    }
+    if let Some(d) = stream.damage() {
+        let _ = tx.send(Msg::Data(SourceItem::Warning(format!(
+            "{}: {d}",
+            path.display()
+        ))));
+    }
+    let _ = tx.send(end);
+}
+
+/// The identification stage: buffer, then identify (see the module docs). The input
+/// policy is the one replay always had: an input error ends the data there, the samples
+/// before it are identified, and a ragged end (one topic one frame longer) after a
+/// truncation or a read error is expected rather than an error.
+fn identify_stage(
+    rx: crossbeam_channel::Receiver<Msg<AlignedItem>>,
+    tx: crossbeam_channel::Sender<Msg<StageOut>>,
+    setup: &Setup,
+    opts: &IdentifyOptions,
+    truth: Option<&[f64]>,
+    path: &Path,
+) -> Result<StageResult, AppError> {
+    let mut data = TestData::default();
+    let mut input_warnings = Vec::new();
+    let mut fault: Option<AlignError> = None;
+    let mut input_error: Option<String> = None;
+    loop {
+        match rx.recv() {
+            Ok(Msg::Data(AlignedItem::Sample(a))) => {
+                data.samples.push(a.sample);
+                data.t_ns.push(a.t_ns);
+                data.excitation.push(a.excitation);
+                data.response.push(a.response);
+            }
+            Ok(Msg::Data(AlignedItem::Warning(w))) => input_warnings.push(w),
+            Ok(Msg::Data(AlignedItem::Fault(e))) => {
+                fault.get_or_insert(e);
+            }
+            Ok(Msg::Flush) => break,
+            Ok(Msg::Quit { error }) => {
+                input_error = error;
+                break;
+            }
+            Err(_) => {
+                input_error = Some("the aligner stage ended without an end message".into());
+                break;
+            }
+        }
+    }
+    if let Some(e) = fault {
+        let cut = input_error.is_some() || !input_warnings.is_empty();
+        let ragged = matches!(e, AlignError::Unpaired { .. }) && cut;
+        if !ragged && input_error.is_none() {
+            input_error = Some(format!("{}: {e}", path.display()));
+        }
+    }
+    if data.len() < 3 {
+        return Err(AppError::TooLittleData {
+            path: path.to_path_buf(),
+            samples: data.len(),
+            cause: input_error.unwrap_or_else(|| "the recording is empty".into()),
+        });
+    }
+    let _ = tx.send(Msg::Data(StageOut::Start {
+        samples: data.len(),
+        passes: opts.passes,
+    }));
+    let identification = identify(
+        setup,
+        &data,
+        opts,
+        truth,
+        &mut |r| {
+            let _ = tx.send(Msg::Data(StageOut::Pass(Box::new(r.clone()))));
+        },
+        &mut |pass, o| {
+            let _ = tx.send(Msg::Data(StageOut::Sample(pass, o.clone())));
+        },
+    );
+    let _ = tx.send(Msg::Flush);
+    Ok(StageResult {
+        data,
+        input_warnings,
+        input_error,
+        identification,
+    })
+}
+
+/// The setup a replay uses: `--setup` if given, else the attached one; the channel names
+/// must match the recording's.
+pub(crate) fn replay_setup(
+    req_setup: Option<&Path>,
+    header: &RecordingHeader,
+    path: &Path,
+) -> Result<Setup, AppError> {
+    let setup = match req_setup {
+        Some(p) => Setup::from_file(p)?,
+        None => {
+            let text = header.setup_toml.clone().ok_or(AppError::NoSetup {
+                path: path.to_path_buf(),
+            })?;
+            Setup::from_toml(&text, &format!("{} (attached setup.toml)", path.display()))?
+        }
+    };
+    let exc = excitation_channels(&setup);
+    let resp = response_channels(&setup);
+    for (topic, want, got) in [
+        ("excitation", &exc.names, &header.excitation_channels.names),
+        ("response", &resp.names, &header.response_channels.names),
+    ] {
+        if want != got {
+            return Err(AppError::ChannelNames {
+                path: path.to_path_buf(),
+                topic,
+                expected: want.clone(),
+                got: got.clone(),
+            });
+        }
+    }
+    Ok(setup)
+}
+
+/// Replay a recording through the pipeline stages and write the results (see
+/// [`crate::app::replay`], which calls this).
+pub fn run(
+    req: &ReplayRequest,
+    progress: &mut dyn FnMut(Progress<'_>),
+) -> Result<ReplayOutcome, AppError> {
+    let path = req.recording.clone();
+    let stream = stream_frames(&path)?;
+    let header = stream.header.clone();
+    let setup = replay_setup(req.setup.as_deref(), &header, &path)?;
+    let mut opts = IdentifyOptions::from_setup(&setup);
+    if let Some(p) = req.passes {
+        opts.passes = p.max(1);
+    }
+    if let Some(k) = req.estimator {
+        opts.estimator = k;
+    }
+    if let Some(l) = req.forgetting {
+        if !(l > 0.0 && l <= 1.0) {
+            return Err(AppError::BadOption {
+                option: "--forgetting",
+                reason: format!("must be in (0, 1] (memory 1/(1 − λ) samples), got {l}"),
+            });
+        }
+        opts.forgetting = l;
+    }
+    if let Some(n) = req.track_every {
+        opts.track_every = n;
+    }
+    let keys = setup.param_keys();
+    let truth: Option<Vec<f64>> =
+        if keys.iter().all(|k| header.truth.contains_key(k)) && !header.truth.is_empty() {
+            Some(keys.iter().map(|k| header.truth[k]).collect())
+        } else {
+            None
+        };
+    let aligner = Aligner::new(setup.excitation.len(), setup.sensors.len(), setup.dt_s);
+
+    let (src_tx, src_rx) = bounded(CHANNEL_CAPACITY);
+    let (al_tx, al_rx) = bounded(CHANNEL_CAPACITY);
+    let (out_tx, out_rx) = bounded(CHANNEL_CAPACITY);
+    let mut last_pass: Vec<(usize, StepOutput)> = Vec::new();
+    let mut current_pass = 0usize;
+    let mut current: Vec<StepOutput> = Vec::new();
+    let stage = thread::scope(|scope| {
+        let p = path.clone();
+        let source = scope.spawn(move || mcap_source(stream, p, src_tx));
+        let align = scope.spawn(move || strict_align_stage(src_rx, al_tx, aligner));
+        let (setup, opts, truth, p) = (&setup, &opts, truth.as_deref(), path.as_path());
+        let ident = scope.spawn(move || identify_stage(al_rx, out_tx, setup, opts, truth, p));
+        // The sink: progress and the per-sample outputs of the latest pass.
+        while let Ok(msg) = out_rx.recv() {
+            match msg {
+                Msg::Data(StageOut::Start { samples, passes }) => {
+                    current.reserve(samples);
+                    progress(Progress::Start { samples, passes });
+                }
+                Msg::Data(StageOut::Sample(pass, o)) => {
+                    if pass != current_pass {
+                        current.clear();
+                        current_pass = pass;
+                    }
+                    current.push(o);
+                    if current.len().is_multiple_of(4096) {
+                        progress(Progress::Samples {
+                            pass,
+                            done: current.len(),
+                        });
+                    }
+                }
+                Msg::Data(StageOut::Pass(r)) => progress(Progress::Pass(&r)),
+                Msg::Flush | Msg::Quit { .. } => break,
+            }
+        }
+        // Drain so the stage never blocks on a full channel, then join everything.
+        while out_rx.recv().is_ok() {}
+        let r = ident.join().map_err(|p| panic_message("identify", p));
+        let s = source.join().map_err(|p| panic_message("source", p));
+        let a = align.join().map_err(|p| panic_message("align", p));
+        s.and(a).and(r)
+    });
+    let stage = stage.map_err(|msg| AppError::Pipeline { msg })??;
+    let identification = stage.identification.map_err(|source| AppError::Identify {
+        path: path.clone(),
+        source,
+    })?;
+    // The outputs of the last *reported* pass: if a later pass failed half-way its samples
+    // are dropped, the reported pass's are kept.
+    if let Some(last) = identification.passes.last()
+        && last.pass == current_pass
+    {
+        last_pass = current.drain(..).map(|o| (current_pass, o)).collect();
+    }
+    let mut outcome = ReplayOutcome {
+        recording: path.clone(),
+        samples: stage.data.len(),
+        identification,
+        input_warnings: stage.input_warnings,
+        input_error: stage.input_error,
+        output: None,
+    };
+    if let Some(out) = &req.out {
+        crate::app::write_results(out, &setup, &header, &stage.data, &outcome, &last_pass)?;
+        outcome.output = Some(out.clone());
+    }
+    Ok(outcome)
+}

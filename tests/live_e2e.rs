@@ -1,0 +1,338 @@
+//! End to end: `acquire-sim` and `jointid live` as real processes over iceoryx2, each test
+//! with its own iceoryx2 global prefix so runs cannot collide.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+
+const JOINTID: &str = env!("CARGO_BIN_EXE_jointid");
+const ACQUIRE: &str = env!("CARGO_BIN_EXE_acquire-sim");
+
+fn setup_path() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("recordings/two-beam-friction.toml")
+}
+
+fn prefix(name: &str) -> String {
+    format!("jt{}{name}_", std::process::id())
+}
+
+fn spawn_live(prefix: &str, extra: &[&str]) -> Child {
+    Command::new(JOINTID)
+        .arg("live")
+        .arg("--setup")
+        .arg(setup_path())
+        .args(["--prefix", prefix, "--json"])
+        .args(extra)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("jointid live starts")
+}
+
+fn acquire(prefix: &str, extra: &[&str]) -> Command {
+    let mut c = Command::new(ACQUIRE);
+    c.arg("--setup")
+        .arg(setup_path())
+        .args(["--prefix", prefix, "--rate", "10000"])
+        .args(extra)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    c
+}
+
+/// Waits for a child with a deadline (a hung session fails the test instead of CI).
+fn finish(mut child: Child, limit: Duration) -> Output {
+    let t0 = Instant::now();
+    loop {
+        if child.try_wait().unwrap().is_some() {
+            return child.wait_with_output().unwrap();
+        }
+        if t0.elapsed() > limit {
+            let _ = child.kill();
+            let out = child.wait_with_output().unwrap();
+            panic!(
+                "process did not finish within {limit:?}; stderr:\n{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn report(out: &Output) -> Value {
+    assert!(
+        out.status.success(),
+        "live failed: {}\n{}",
+        String::from_utf8_lossy(&out.stderr),
+        String::from_utf8_lossy(&out.stdout)
+    );
+    serde_json::from_slice(&out.stdout).expect("live --json prints one JSON object")
+}
+
+/// Blocks until `n` excitation frames of `session` have been published (seen by a
+/// subscriber of our own), so timing-dependent steps do not depend on machine load.
+fn wait_for_frames(prefix: &str, session: &str, n: u64) {
+    use jointid::io::shm::{FrameSubscriber, ShmOptions};
+    let o = ShmOptions {
+        session: session.into(),
+        global_prefix: Some(prefix.into()),
+        ..ShmOptions::default()
+    };
+    let mut sub = FrameSubscriber::new(&o, "excitation").unwrap();
+    let t0 = Instant::now();
+    let mut seen = 0;
+    while seen < n {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "only {seen} frames seen"
+        );
+        let _ = sub.wait(Duration::from_millis(50));
+        while sub.try_recv().unwrap().is_some() {
+            seen += 1;
+        }
+    }
+}
+
+fn params_of(v: &Value) -> Vec<(String, f64)> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|p| {
+            (
+                p["basis"].as_str().unwrap().to_string(),
+                p["value"].as_f64().unwrap(),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn live_identifies_what_acquire_sim_publishes_and_the_recording_replays() {
+    let p = prefix("clean");
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("session.mcap");
+    let live = spawn_live(
+        &p,
+        &["--record", rec.to_str().unwrap(), "--refit-every", "500"],
+    );
+    // The shipped recording's test: random input, 2,000 samples at 10 kHz, 8 sub-steps,
+    // additive noise of 1 % RMS, seed 11.
+    let acq = acquire(&p, &["--samples", "2000", "--seed", "11"])
+        .spawn()
+        .unwrap();
+    let acq = finish(acq, Duration::from_secs(60));
+    assert!(
+        acq.status.success(),
+        "{}",
+        String::from_utf8_lossy(&acq.stderr)
+    );
+    let r = report(&finish(live, Duration::from_secs(120)));
+
+    // Every sample processed, in order, nothing lost.
+    assert_eq!(r["samples"], 2000);
+    assert_eq!(r["first_sample"], 0);
+    assert_eq!(r["last_sample"], 1999);
+    let f = &r["faults"];
+    for k in [
+        "missing_samples",
+        "late_or_duplicate",
+        "unpaired",
+        "non_finite",
+        "transport_drops",
+    ] {
+        assert_eq!(f[k], 0, "{k}: {f}");
+    }
+    assert_eq!(f["segments"], 1);
+    assert_eq!(r["ended"], "end-of-stream");
+    assert_eq!(r["rate_hz"].as_f64().unwrap(), 10_000.0);
+    // Online refits every 500 samples were published (after the 1,000-sample warm-up).
+    assert!(r["refits"].as_u64().unwrap() >= 2, "{}", r["refits"]);
+
+    // Final batch identification: the replay tolerances against the truth.
+    let id = &r["final_identification"];
+    let last = id["passes"].as_array().unwrap().last().unwrap();
+    let live_params = params_of(&last["parameters"]);
+    let get = |k: &str| live_params.iter().find(|(b, _)| b == k).unwrap().1;
+    let spring = get("u");
+    let friction = get("sign(u)");
+    assert!((spring / 3e5 - 1.0).abs() < 0.02, "spring {spring}");
+    assert!(
+        (friction / 3000.0 - 1.0).abs() < 0.10,
+        "friction {friction}"
+    );
+
+    // The recorded session replays to the same parameters (same code, same data).
+    let replay = Command::new(JOINTID)
+        .arg("replay")
+        .arg(&rec)
+        .arg("--json")
+        .output()
+        .unwrap();
+    assert!(
+        replay.status.success(),
+        "{}",
+        String::from_utf8_lossy(&replay.stderr)
+    );
+    let rv: Value = serde_json::from_slice(&replay.stdout).unwrap();
+    assert_eq!(rv["samples"], 2000);
+    assert_eq!(params_of(&rv["parameters"]), live_params);
+}
+
+#[test]
+fn killed_publisher_is_reported_and_a_restarted_one_picked_up() {
+    let p = prefix("restart");
+    let live = spawn_live(&p, &["--buffer-samples", "0", "--idle-timeout", "20"]);
+    // A long run that is killed (SIGKILL: no end-of-stream, no clean-up) part-way.
+    let mut first = acquire(&p, &["--samples", "200000", "--substeps", "1"])
+        .spawn()
+        .unwrap();
+    wait_for_frames(&p, "default", 6000);
+    first.kill().unwrap();
+    let _ = first.wait();
+    // The restarted program starts again at sample 0 and ends cleanly.
+    let second = acquire(&p, &["--samples", "2000", "--seed", "5"])
+        .spawn()
+        .unwrap();
+    let second = finish(second, Duration::from_secs(60));
+    assert!(
+        second.status.success(),
+        "{}",
+        String::from_utf8_lossy(&second.stderr)
+    );
+    let r = report(&finish(live, Duration::from_secs(60)));
+    let warnings = r["warnings"].to_string();
+    assert!(
+        warnings.contains("publisher gone without end-of-stream"),
+        "{warnings}"
+    );
+    let f = &r["faults"];
+    assert!(f["publisher_gone"].as_u64().unwrap() >= 1, "{f}");
+    assert!(f["publisher_appeared"].as_u64().unwrap() >= 3, "{f}");
+    assert_eq!(f["restarts"], 1, "{f}");
+    assert_eq!(f["segments"], 2, "{f}");
+    assert_eq!(f["non_finite"], 0);
+    // The second run arrived completely: its last sample is the session's last.
+    assert_eq!(r["last_sample"], 1999);
+    assert!(r["samples"].as_u64().unwrap() > 2000, "{}", r["samples"]);
+    assert_eq!(r["ended"], "end-of-stream");
+}
+
+#[test]
+fn two_sessions_on_one_prefix_stay_apart_and_a_stalled_viewer_costs_no_input() {
+    use jointid::io::shm::{FrameSubscriber, ShmOptions};
+    let p = prefix("two");
+    let live_a = spawn_live(&p, &["--session", "a", "--buffer-samples", "0"]);
+    let live_b = spawn_live(&p, &["--session", "b", "--buffer-samples", "0"]);
+    // A viewer of session a's residuals that connects and never reads.
+    let viewer_opts = ShmOptions {
+        session: "a".into(),
+        global_prefix: Some(p.clone()),
+        ..ShmOptions::default()
+    };
+    let t0 = Instant::now();
+    let mut viewer = loop {
+        // The service exists once live has started its publishers.
+        if let Ok(v) = FrameSubscriber::new(&viewer_opts, "residuals")
+            && v.publisher_count() > 0
+        {
+            break v;
+        }
+        assert!(
+            t0.elapsed() < Duration::from_secs(30),
+            "live a did not start"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_eq!(viewer.try_recv().unwrap(), None); // connect, then stop reading
+    let a = acquire(
+        &p,
+        &[
+            "--session",
+            "a",
+            "--samples",
+            "30000",
+            "--as-fast-as-possible",
+        ],
+    )
+    .spawn()
+    .unwrap();
+    let b = acquire(&p, &["--session", "b", "--samples", "3000", "--seed", "4"])
+        .spawn()
+        .unwrap();
+    for acq in [a, b] {
+        let o = finish(acq, Duration::from_secs(60));
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let ra = report(&finish(live_a, Duration::from_secs(60)));
+    let rb = report(&finish(live_b, Duration::from_secs(60)));
+    // Each session saw exactly its own stream.
+    assert_eq!(
+        (ra["samples"].as_u64(), ra["last_sample"].as_u64()),
+        (Some(30000), Some(29999))
+    );
+    assert_eq!(
+        (rb["samples"].as_u64(), rb["last_sample"].as_u64()),
+        (Some(3000), Some(2999))
+    );
+    for r in [&ra, &rb] {
+        for k in [
+            "missing_samples",
+            "late_or_duplicate",
+            "unpaired",
+            "transport_drops",
+        ] {
+            assert_eq!(r["faults"][k], 0, "{k}");
+        }
+    }
+    // The viewer's buffer (8192) filled: the rest was discarded for it and counted,
+    // while every input sample was processed.
+    assert!(ra["viewer_discards"].as_u64().unwrap() > 0, "{ra}");
+    assert_eq!(rb["viewer_discards"], 0);
+    drop(viewer);
+}
+
+#[test]
+fn sigterm_drains_the_stages_and_finalises_the_recording() {
+    let p = prefix("term");
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("stopped.mcap");
+    let live = spawn_live(
+        &p,
+        &["--record", rec.to_str().unwrap(), "--buffer-samples", "0"],
+    );
+    let mut acq = acquire(&p, &["--samples", "100000", "--substeps", "1"])
+        .spawn()
+        .unwrap();
+    wait_for_frames(&p, "default", 3000);
+    let status = Command::new("kill")
+        .args(["-TERM", &live.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let r = report(&finish(live, Duration::from_secs(30)));
+    let _ = acq.kill();
+    let _ = acq.wait();
+    assert_eq!(r["ended"], "stopped");
+    let n = r["samples"].as_u64().unwrap();
+    assert!(n > 0 && n < 100_000, "{n}");
+    // The recording was finalised (renamed from .partial) and holds every processed sample.
+    assert!(rec.exists(), "recording not finalised");
+    assert!(!jointid::io::mcap::partial_path(&rec).exists());
+    let inspect = Command::new(JOINTID)
+        .arg("inspect")
+        .arg(&rec)
+        .arg("--json")
+        .output()
+        .unwrap();
+    assert!(
+        inspect.status.success(),
+        "{}",
+        String::from_utf8_lossy(&inspect.stdout)
+    );
+    let i: Value = serde_json::from_slice(&inspect.stdout).unwrap();
+    assert_eq!(i["excitation_frames"].as_u64(), Some(n));
+    assert_eq!(i["response_frames"].as_u64(), Some(n));
+    assert!(i["damage"].is_null());
+}

@@ -1,0 +1,131 @@
+//! Soak: 20 s of paced 10 kHz acquisition (200,000 samples) from `acquire-sim` through
+//! `jointid live` over iceoryx2. Asserts zero lost samples, the final parameters (batch
+//! refit over the first 2,000 buffered samples) within the replay tolerances, and no growth
+//! of the live process's resident memory after warm-up.
+
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+
+fn rss_kib(pid: u32) -> Option<u64> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    s.lines()
+        .find(|l| l.starts_with("VmRSS:"))?
+        .split_whitespace()
+        .nth(1)?
+        .parse()
+        .ok()
+}
+
+#[test]
+fn soak_twenty_seconds_without_loss_or_memory_growth() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let setup = root.join("recordings/two-beam-friction.toml");
+    let prefix = format!("jt{}soak_", std::process::id());
+    let live = Command::new(env!("CARGO_BIN_EXE_jointid"))
+        .arg("live")
+        .arg("--setup")
+        .arg(&setup)
+        .args(["--prefix", &prefix, "--json", "--buffer-samples", "2000"])
+        .args(["--refit-every", "20000"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let pid = live.id();
+    let mut acq = Command::new(env!("CARGO_BIN_EXE_acquire-sim"))
+        .arg("--setup")
+        .arg(&setup)
+        .args(["--prefix", &prefix, "--rate", "10000", "--seconds", "20"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Sample the live process's RSS once a second while the acquisition runs.
+    let t0 = Instant::now();
+    let mut rss: Vec<(f64, u64)> = Vec::new();
+    while acq.try_wait().unwrap().is_none() {
+        assert!(t0.elapsed() < Duration::from_secs(120), "acquire-sim hung");
+        if let Some(k) = rss_kib(pid) {
+            rss.push((t0.elapsed().as_secs_f64(), k));
+        }
+        std::thread::sleep(Duration::from_secs(1));
+    }
+    let acq = acq.wait_with_output().unwrap();
+    assert!(
+        acq.status.success(),
+        "{}",
+        String::from_utf8_lossy(&acq.stderr)
+    );
+    let mut live = live;
+    while live.try_wait().unwrap().is_none() {
+        assert!(t0.elapsed() < Duration::from_secs(240), "jointid live hung");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let out = live.wait_with_output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r: Value = serde_json::from_slice(&out.stdout).unwrap();
+
+    // Zero lost samples, all in order.
+    assert_eq!(r["samples"], 200_000);
+    assert_eq!(r["last_sample"], 199_999);
+    for k in [
+        "missing_samples",
+        "late_or_duplicate",
+        "unpaired",
+        "non_finite",
+        "transport_drops",
+    ] {
+        assert_eq!(r["faults"][k], 0, "{k}");
+    }
+    assert_eq!(r["outputs_dropped"], 0);
+    assert_eq!(r["ended"], "end-of-stream");
+    // Kept up with the source (paced: about 1).
+    assert!(
+        r["real_time_factor"].as_f64().unwrap() > 0.95,
+        "{}",
+        r["real_time_factor"]
+    );
+
+    // Final parameters within the replay tolerances.
+    let p = r["final_identification"]["passes"]
+        .as_array()
+        .unwrap()
+        .last()
+        .unwrap()["parameters"]
+        .as_array()
+        .unwrap()
+        .clone();
+    let get = |b: &str| {
+        p.iter()
+            .find(|x| x["basis"] == b)
+            .and_then(|x| x["value"].as_f64())
+            .unwrap()
+    };
+    assert!((get("u") / 3e5 - 1.0).abs() < 0.02, "spring {}", get("u"));
+    assert!(
+        (get("sign(u)") / 3000.0 - 1.0).abs() < 0.10,
+        "friction {}",
+        get("sign(u)")
+    );
+
+    // Memory: after a 5 s warm-up (buffer full, queues at their working depth), the RSS
+    // stays within 2 MiB of its value then (measured: flat at 16.7 MiB).
+    let warm: Vec<u64> = rss
+        .iter()
+        .filter(|(t, _)| *t >= 5.0)
+        .map(|(_, k)| *k)
+        .collect();
+    assert!(warm.len() >= 10, "too few RSS samples: {rss:?}");
+    let (first, max) = (warm[0], *warm.iter().max().unwrap());
+    assert!(
+        max <= first + 2048,
+        "RSS grew from {first} KiB to {max} KiB after warm-up: {rss:?}"
+    );
+}
