@@ -191,6 +191,10 @@ fn killed_publisher_is_reported_and_a_restarted_one_picked_up() {
     wait_for_frames(&p, "default", 6000);
     first.kill().unwrap();
     let _ = first.wait();
+    // The subscriber cleans a dead node after 500 ms of silence (`liveness_interval`); a
+    // restart faster than that is reported only as a new run (src/io/shm.rs), so the
+    // operator's restart here comes after 3 intervals, as a real one would.
+    std::thread::sleep(Duration::from_millis(1500));
     // The restarted program starts again at sample 0 and ends cleanly.
     let second = acquire(&p, &["--samples", "2000", "--seed", "5"])
         .spawn()
