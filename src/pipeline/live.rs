@@ -986,7 +986,9 @@ fn refitter_stage(
     refit_every: usize,
 ) {
     let opts = IdentifyOptions::from_setup(setup);
-    let mut acc = ParameterAccumulator::new(setup, opts.stick_band, 1.0);
+    // The setup's `[estimator] forgetting` makes the published online fit track a changing
+    // joint (memory 1/(1 − λ) samples, see `crate::track`); 1 pools the whole session.
+    let mut acc = ParameterAccumulator::new(setup, opts.stick_band, opts.forgetting);
     let mut since = 0usize;
     let mut last = (0u64, 0u64);
     let mut ok = true;
