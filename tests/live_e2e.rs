@@ -1,75 +1,14 @@
 //! End to end: `acquire-sim` and `jointid live` as real processes over iceoryx2, each test
 //! with its own iceoryx2 global prefix so runs cannot collide.
 
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
-const JOINTID: &str = env!("CARGO_BIN_EXE_jointid");
-const ACQUIRE: &str = env!("CARGO_BIN_EXE_acquire-sim");
+mod common;
 
-fn setup_path() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("recordings/two-beam-friction.toml")
-}
-
-fn prefix(name: &str) -> String {
-    format!("jt{}{name}_", std::process::id())
-}
-
-fn spawn_live(prefix: &str, extra: &[&str]) -> Child {
-    Command::new(JOINTID)
-        .arg("live")
-        .arg("--setup")
-        .arg(setup_path())
-        .args(["--prefix", prefix, "--json"])
-        .args(extra)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("jointid live starts")
-}
-
-fn acquire(prefix: &str, extra: &[&str]) -> Command {
-    let mut c = Command::new(ACQUIRE);
-    c.arg("--setup")
-        .arg(setup_path())
-        .args(["--prefix", prefix, "--rate", "10000"])
-        .args(extra)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped());
-    c
-}
-
-/// Waits for a child with a deadline (a hung session fails the test instead of CI).
-fn finish(mut child: Child, limit: Duration) -> Output {
-    let t0 = Instant::now();
-    loop {
-        if child.try_wait().unwrap().is_some() {
-            return child.wait_with_output().unwrap();
-        }
-        if t0.elapsed() > limit {
-            let _ = child.kill();
-            let out = child.wait_with_output().unwrap();
-            panic!(
-                "process did not finish within {limit:?}; stderr:\n{}",
-                String::from_utf8_lossy(&out.stderr)
-            );
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
-fn report(out: &Output) -> Value {
-    assert!(
-        out.status.success(),
-        "live failed: {}\n{}",
-        String::from_utf8_lossy(&out.stderr),
-        String::from_utf8_lossy(&out.stdout)
-    );
-    serde_json::from_slice(&out.stdout).expect("live --json prints one JSON object")
-}
+use common::live::{JOINTID, acquire, finish, prefix, report, spawn_live};
 
 /// Blocks until `n` excitation frames of `session` have been published (seen by a
 /// subscriber of our own), so timing-dependent steps do not depend on machine load.

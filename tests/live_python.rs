@@ -6,12 +6,16 @@
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::process::Command;
+use std::time::Duration;
 
 use jointid::app::{self, ReplayRequest};
 use jointid::io::mcap::{InputTopic, stream_frames};
-use serde_json::{Value, json};
+use serde_json::json;
+
+mod common;
+
+use common::live::{assert_no_input_faults, finish, prefix, report, spawn_live};
 
 fn python() -> Option<PathBuf> {
     let p = std::env::var_os("JOINTID_PYTHON")
@@ -58,16 +62,8 @@ fn python_publisher_feeds_jointid_live() {
             writeln!(w, "{line}").unwrap();
         }
     }
-    let prefix = format!("jt{}py_", std::process::id());
-    let live = Command::new(env!("CARGO_BIN_EXE_jointid"))
-        .arg("live")
-        .arg("--setup")
-        .arg(root.join("recordings/two-beam-friction.toml"))
-        .args(["--prefix", &prefix, "--json"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let prefix = prefix("py");
+    let live = spawn_live(&prefix, &[]);
     let publish = Command::new(&py)
         .arg(root.join("examples/python/publish.py"))
         .arg("--input")
@@ -80,36 +76,13 @@ fn python_publisher_feeds_jointid_live() {
         "publish.py failed: {}",
         String::from_utf8_lossy(&publish.stderr)
     );
-    let t0 = Instant::now();
-    let mut live = live;
-    while live.try_wait().unwrap().is_none() {
-        if t0.elapsed() > Duration::from_secs(120) {
-            let _ = live.kill();
-            panic!("jointid live did not end after the Python end-of-stream frames");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    let out = live.wait_with_output().unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let r: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let r = report(&finish(live, Duration::from_secs(120)));
     assert_eq!(r["samples"], 2000);
     assert_eq!(
         (r["first_sample"].clone(), r["last_sample"].clone()),
         (json!(0), json!(1999))
     );
-    for k in [
-        "missing_samples",
-        "late_or_duplicate",
-        "unpaired",
-        "non_finite",
-        "transport_drops",
-    ] {
-        assert_eq!(r["faults"][k], 0, "{k}");
-    }
+    assert_no_input_faults(&r);
     assert_eq!(r["ended"], "end-of-stream");
     // Bit-identical values crossed the language boundary: the final identification equals
     // the replay of the shipped recording exactly.

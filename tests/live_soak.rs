@@ -3,11 +3,11 @@
 //! refit over the first 2,000 buffered samples) within the replay tolerances, and no growth
 //! of the live process's resident memory after warm-up.
 
-use std::path::Path;
-use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use serde_json::Value;
+mod common;
+
+use common::live::{acquire, assert_no_input_faults, finish, prefix, report, spawn_live};
 
 fn rss_kib(pid: u32) -> Option<u64> {
     let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
@@ -21,28 +21,13 @@ fn rss_kib(pid: u32) -> Option<u64> {
 
 #[test]
 fn soak_twenty_seconds_without_loss_or_memory_growth() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let setup = root.join("recordings/two-beam-friction.toml");
-    let prefix = format!("jt{}soak_", std::process::id());
-    let live = Command::new(env!("CARGO_BIN_EXE_jointid"))
-        .arg("live")
-        .arg("--setup")
-        .arg(&setup)
-        .args(["--prefix", &prefix, "--json", "--buffer-samples", "2000"])
-        .args(["--refit-every", "20000"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let prefix = prefix("soak");
+    let live = spawn_live(
+        &prefix,
+        &["--buffer-samples", "2000", "--refit-every", "20000"],
+    );
     let pid = live.id();
-    let mut acq = Command::new(env!("CARGO_BIN_EXE_acquire-sim"))
-        .arg("--setup")
-        .arg(&setup)
-        .args(["--prefix", &prefix, "--rate", "10000", "--seconds", "20"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut acq = acquire(&prefix, &["--seconds", "20"]).spawn().unwrap();
     // Sample the live process's RSS once a second while the acquisition runs.
     let t0 = Instant::now();
     let mut rss: Vec<(f64, u64)> = Vec::new();
@@ -59,31 +44,12 @@ fn soak_twenty_seconds_without_loss_or_memory_growth() {
         "{}",
         String::from_utf8_lossy(&acq.stderr)
     );
-    let mut live = live;
-    while live.try_wait().unwrap().is_none() {
-        assert!(t0.elapsed() < Duration::from_secs(240), "jointid live hung");
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let out = live.wait_with_output().unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let r: Value = serde_json::from_slice(&out.stdout).unwrap();
-
+    let remaining = Duration::from_secs(240).saturating_sub(t0.elapsed());
+    let r = report(&finish(live, remaining));
     // Zero lost samples, all in order.
     assert_eq!(r["samples"], 200_000);
     assert_eq!(r["last_sample"], 199_999);
-    for k in [
-        "missing_samples",
-        "late_or_duplicate",
-        "unpaired",
-        "non_finite",
-        "transport_drops",
-    ] {
-        assert_eq!(r["faults"][k], 0, "{k}");
-    }
+    assert_no_input_faults(&r);
     assert_eq!(r["outputs_dropped"], 0);
     assert_eq!(r["ended"], "end-of-stream");
     // Kept up with the source (paced: about 1).

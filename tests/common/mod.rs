@@ -1,6 +1,8 @@
 //! Helpers shared by the end-to-end tests: run the real `jointid` binary and read its JSON.
 #![allow(dead_code)]
 
+pub mod live;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
