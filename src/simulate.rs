@@ -241,6 +241,20 @@ impl TruthSystem {
     }
 
     /// Scale the true linear stiffness (`u` basis) of every connection.
+    /// Connection forces at rest: only the constant (preload) terms act.
+    fn rest_force(&self) -> DVector<f64> {
+        DVector::from_iterator(
+            self.blocks.len(),
+            self.blocks.iter().map(|(basis, p, _)| {
+                basis
+                    .iter()
+                    .zip(p)
+                    .map(|(b, pj)| if let Basis::Const(k) = b { k * pj } else { 0.0 })
+                    .sum()
+            }),
+        )
+    }
+
     pub fn scale_stiffness(&mut self, factor: f64) {
         for (basis, truth, _) in &mut self.blocks {
             for (b, p) in basis.iter().zip(truth.iter_mut()) {
@@ -474,20 +488,9 @@ pub fn response_to_excitation(
     let h = dt_s / substeps as f64;
     let mut sys = TruthSystem::with_params(setup, model, h, params)?;
     let n = model.n();
-    let q = model.Lc.ncols();
     let ne = model.Lp.ncols();
     let mut s = State::zeros(n);
-    let f0 = DVector::from_iterator(
-        q,
-        (0..q).map(|c| {
-            let (basis, p, _) = &sys.blocks[c];
-            basis
-                .iter()
-                .zip(p)
-                .map(|(b, pj)| if let Basis::Const(k) = b { k * pj } else { 0.0 })
-                .sum()
-        }),
-    );
+    let f0 = sys.rest_force();
     let p0 = DVector::from_iterator(
         ne,
         (0..ne).map(|j| excitation[0].get(j).copied().unwrap_or(0.0)),
@@ -579,17 +582,7 @@ pub fn simulate(setup: &Setup, opts: &SimulateOptions) -> Result<Simulated, Simu
     // At rest: f(0) holds only constant terms; with p(0) = 0 every scenario starts in
     // equilibrium (a stuck joint carries no force).
     let q = model.Lc.ncols();
-    let f0 = DVector::from_iterator(
-        q,
-        (0..q).map(|c| {
-            let (basis, p, _) = &sys.blocks[c];
-            basis
-                .iter()
-                .zip(p)
-                .map(|(b, pj)| if let Basis::Const(k) = b { k * pj } else { 0.0 })
-                .sum()
-        }),
-    );
+    let f0 = sys.rest_force();
     let rhs = &model.Lp * &p0 - &model.Lc * &f0;
     s.a = model
         .M
