@@ -168,3 +168,32 @@ fn a_dead_band_joint_is_identified_with_the_gap_basis() {
     let wrong = replay_json(&[n, "--setup", bolt.to_str().expect("utf-8"), "--passes", "3"]);
     assert!(rel(final_value(&wrong, 0), K0) > 0.15, "{wrong}");
 }
+
+/// A forgetting factor outside (0, 1] is refused, naming the option or the setup key.
+#[test]
+fn a_bad_forgetting_factor_is_an_error_naming_where_it_came_from() {
+    let rec = repo("recordings/two-beam-spring.mcap");
+    let out = common::run(&[
+        "replay",
+        rec.to_str().expect("utf-8"),
+        "--forgetting",
+        "1.5",
+    ]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--forgetting") && err.contains("1.5"), "{err}");
+
+    let dir = tempfile::tempdir().expect("tempdir");
+    let bad = dir.path().join("bad.toml");
+    let text = std::fs::read_to_string(repo("recordings/two-beam-bolt.toml")).expect("setup");
+    std::fs::write(&bad, format!("{text}forgetting = 0.0\n")).expect("write");
+    let out = common::run(&[
+        "replay",
+        rec.to_str().expect("utf-8"),
+        "--setup",
+        bad.to_str().expect("utf-8"),
+    ]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("estimator.forgetting"), "{err}");
+}
