@@ -655,6 +655,10 @@ pub fn identify(
         return Err(IdentifyError::TooShort(data.len()));
     }
     let model = Model::assemble(setup)?;
+    let model = match setup.estimator.reduce_modes {
+        Some(r) => model.craig_bampton(r)?,
+        None => model,
+    };
     check_observability(setup, &model, opts)?;
     let (sigma, estimated) = channel_noise(setup, data);
     let mut params = setup.initial_params();

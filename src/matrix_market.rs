@@ -310,6 +310,7 @@ pub fn dir_name(d: Dir) -> &'static str {
         Dir::Uz => "uz",
         Dir::Rx => "rx",
         Dir::Ry => "ry",
+        Dir::Mode => "mode",
     }
 }
 

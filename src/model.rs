@@ -15,6 +15,7 @@
 
 use std::collections::BTreeMap;
 
+pub mod reduce;
 pub mod synthetic;
 
 use nalgebra::{DMatrix, DVector};
@@ -33,6 +34,10 @@ pub enum ModelError {
         "the massless DOFs cannot be condensed: their stiffness block is singular (is a rotation without any beam or spring?)"
     )]
     SingularCondensation,
+    #[error(
+        "model reduction: the stiffness of the {interior} interior DOFs with the boundary DOFs held is singular (an interior part is free to move); keep a DOF of it as a station or drop `reduce_modes`"
+    )]
+    ReductionSingular { interior: usize },
     #[error("the model has no DOF with mass")]
     NoMass,
     #[error(
@@ -177,7 +182,7 @@ impl Model {
                     .iter()
                     .position(|f| *f == FullDof::Rz(d.node, usize::MAX)),
                 // Rejected for beam models in setup validation.
-                Dir::Ux | Dir::Uy | Dir::Uz | Dir::Rx | Dir::Ry => None,
+                Dir::Ux | Dir::Uy | Dir::Uz | Dir::Rx | Dir::Ry | Dir::Mode => None,
             }
         };
         for ms in &m.masses {

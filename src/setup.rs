@@ -208,6 +208,9 @@ pub enum Dir {
     /// Rotations about x, y of an external model, rad (about z is `rz`).
     Rx,
     Ry,
+    /// Coordinate of a retained fixed-interface mode of a reduced model (`node` = mode
+    /// number from 1; see `model::reduce`), kg^½·m. Not a place on the structure.
+    Mode,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
@@ -404,6 +407,13 @@ pub struct EstimatorSpec {
     /// Compute the Cramér–Rao lower bound of every parameter for the recording.
     #[serde(default = "default_true")]
     pub crlb: bool,
+    /// Identify with a Craig–Bampton reduction of the model: the DOFs that carry the
+    /// excitation, a station or a connection stay physical, the rest is represented by its
+    /// static constraint modes plus this many lowest fixed-interface modes (see
+    /// `model::reduce`). Absent (default): the full model. `simulate` always uses the full
+    /// model.
+    #[serde(default)]
+    pub reduce_modes: Option<usize>,
 }
 
 fn default_forgetting() -> f64 {
@@ -441,6 +451,7 @@ impl Default for EstimatorSpec {
             track_every: 0,
             output_error: true,
             crlb: true,
+            reduce_modes: None,
         }
     }
 }
