@@ -10,9 +10,7 @@
 
 use std::time::Instant;
 
-use jointid::identify::{
-    IdentifyOptions, TestData, build_estimator, channel_noise, identify,
-};
+use jointid::identify::{IdentifyOptions, TestData, build_estimator, channel_noise, identify};
 use jointid::model::Model;
 use jointid::setup::{EstimatorKind, Setup};
 use jointid::simulate::{Noise, Scenario, SimulateOptions, simulate};
@@ -73,7 +71,13 @@ fn paper(s: &Setup, data: &TestData, truth: &[f64], peak_force: f64) -> String {
         Ok(id) => match id.final_parameters() {
             Some(p) => p
                 .iter()
-                .map(|p| format!("{:+.3e} %", 100.0 * (p.value - p.truth.unwrap_or(f64::NAN)) / p.truth.unwrap_or(f64::NAN)))
+                .map(|p| {
+                    format!(
+                        "{:+.3e} %",
+                        100.0 * (p.value - p.truth.unwrap_or(f64::NAN))
+                            / p.truth.unwrap_or(f64::NAN)
+                    )
+                })
                 .collect::<Vec<_>>()
                 .join(", "),
             None => "no parameters".into(),
@@ -95,7 +99,11 @@ fn paper(s: &Setup, data: &TestData, truth: &[f64], peak_force: f64) -> String {
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
-    let arg = |k: &str| args.iter().position(|a| a == k).map(|i| args[i + 1].clone());
+    let arg = |k: &str| {
+        args.iter()
+            .position(|a| a == k)
+            .map(|i| args[i + 1].clone())
+    };
     let samples: usize = arg("--samples").map_or(2000, |v| v.parse().expect("--samples"));
     let seeds: u64 = arg("--seeds").map_or(3, |v| v.parse().expect("--seeds"));
     let modes: Vec<usize> = arg("--modes").map_or(vec![0, 4, 12], |v| {
@@ -137,7 +145,11 @@ fn main() {
             .join(", ")
     );
     for case in &cases {
-        let seeds_here = if matches!(case.noise, Noise::None) { 1 } else { seeds };
+        let seeds_here = if matches!(case.noise, Noise::None) {
+            1
+        } else {
+            seeds
+        };
         for seed in 1..=seeds_here {
             let base = setup(&file, case.model_substeps, None);
             let sim = simulate(
@@ -164,7 +176,10 @@ fn main() {
                 response: sim.response.clone(),
             };
             println!("\n## {} — seed {seed}, {samples} samples", case.name);
-            println!("paper (full model): {}", paper(&base, &data, &sim.truth, peak));
+            println!(
+                "paper (full model): {}",
+                paper(&base, &data, &sim.truth, peak)
+            );
             let mut variants: Vec<Option<usize>> = modes.iter().map(|&r| Some(r)).collect();
             if full {
                 variants.push(None);
@@ -173,7 +188,14 @@ fn main() {
                 let s = setup(&file, case.model_substeps, r);
                 let opts = IdentifyOptions::from_setup(&s);
                 let t0 = Instant::now();
-                let res = identify(&s, &data, &opts, Some(&sim.truth), &mut |_| {}, &mut |_, _| {});
+                let res = identify(
+                    &s,
+                    &data,
+                    &opts,
+                    Some(&sim.truth),
+                    &mut |_| {},
+                    &mut |_, _| {},
+                );
                 let secs = t0.elapsed().as_secs_f64();
                 let label = r.map_or("full".to_string(), |r| format!("{r} modes"));
                 match res {
@@ -201,7 +223,11 @@ fn main() {
                         println!(
                             "default, {label}: {txt}; passes {} ({}), Kalman ρ {rho:.6}, {secs:.1} s",
                             id.passes.len(),
-                            if id.converged { "converged" } else { "not converged" }
+                            if id.converged {
+                                "converged"
+                            } else {
+                                "not converged"
+                            }
                         );
                     }
                     Err(e) => println!("default, {label}: error {e} ({secs:.1} s)"),

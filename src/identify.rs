@@ -654,11 +654,7 @@ pub fn identify(
     if data.len() < 3 {
         return Err(IdentifyError::TooShort(data.len()));
     }
-    let model = Model::assemble(setup)?;
-    let model = match setup.estimator.reduce_modes {
-        Some(r) => model.craig_bampton(r)?,
-        None => model,
-    };
+    let model = Model::for_identification(setup)?;
     check_observability(setup, &model, opts)?;
     let (sigma, estimated) = channel_noise(setup, data);
     let mut params = setup.initial_params();

@@ -20,7 +20,13 @@ fn setup(file: &str, model_substeps: usize) -> Setup {
     s
 }
 
-fn data(s: &Setup, steps: usize, data_substeps: usize, noise: Noise, seed: u64) -> (Simulated, TestData) {
+fn data(
+    s: &Setup,
+    steps: usize,
+    data_substeps: usize,
+    noise: Noise,
+    seed: u64,
+) -> (Simulated, TestData) {
     let sim = simulate(
         s,
         &SimulateOptions {
@@ -67,8 +73,7 @@ fn paper_estimator_diverges_on_the_fifty_element_model() {
     let mut opts = IdentifyOptions::from_setup(&s);
     opts.estimator = EstimatorKind::Paper;
     let (sigma, _) = channel_noise(&s, &d);
-    let mut est =
-        build_estimator(&s, &model, &s.initial_params(), &opts, &sigma, d.len()).unwrap();
+    let mut est = build_estimator(&s, &model, &s.initial_params(), &opts, &sigma, d.len()).unwrap();
     let rho = est.diagnostics().error_spectral_radius.unwrap();
     assert!(rho >= 1.0, "paper error recursion ρ = {rho}");
     let mut out = StepOutput::new(1);
@@ -83,7 +88,10 @@ fn paper_estimator_diverges_on_the_fifty_element_model() {
         }
     }
     eprintln!("paper: ρ {rho:.3}, blew up at sample {blew:?}");
-    assert!(blew.is_some(), "the paper's residual force stayed bounded (ρ {rho})");
+    assert!(
+        blew.is_some(),
+        "the paper's residual force stayed bounded (ρ {rho})"
+    );
     // And the identification with it gives no usable spring.
     let res = identify(&s, &d, &opts, Some(&sim.truth), &mut |_| {}, &mut |_, _| {});
     if let Ok(id) = res {
@@ -120,6 +128,10 @@ fn default_identifies_friction_and_spring_on_noisy_continuous_data() {
     assert!(fr.abs() < 0.05, "friction {fr}");
     assert!(k.abs() < 0.01, "spring {k}");
     for p in id.final_parameters().unwrap() {
-        assert!(p.std_error.is_finite() && p.std_error > 0.0, "{} se", p.basis);
+        assert!(
+            p.std_error.is_finite() && p.std_error > 0.0,
+            "{} se",
+            p.basis
+        );
     }
 }

@@ -34,8 +34,8 @@ pub fn boundary_dofs(model: &Model) -> Vec<usize> {
     let n = model.n();
     let mut keep = vec![false; n];
     for i in 0..n {
-        let touched = model.Lp.row(i).iter().any(|&x| x != 0.0)
-            || model.Lc.row(i).iter().any(|&x| x != 0.0);
+        let touched =
+            model.Lp.row(i).iter().any(|&x| x != 0.0) || model.Lc.row(i).iter().any(|&x| x != 0.0);
         keep[i] = touched;
     }
     for s in &model.stations {
@@ -45,6 +45,16 @@ pub fn boundary_dofs(model: &Model) -> Vec<usize> {
 }
 
 impl Model {
+    /// The model the estimators identify with: [`Model::assemble`], reduced by
+    /// [`Model::craig_bampton`] when the setup asks for it (`[estimator] reduce_modes`).
+    pub fn for_identification(setup: &crate::setup::Setup) -> Result<Model, ModelError> {
+        let model = Model::assemble(setup)?;
+        match setup.estimator.reduce_modes {
+            Some(r) => model.craig_bampton(r),
+            None => Ok(model),
+        }
+    }
+
     /// Craig–Bampton reduction to the boundary DOFs (see [`boundary_dofs`]) plus the lowest
     /// `modes` fixed-interface modes (fewer when the interior has fewer DOFs). Boundary DOFs
     /// keep their labels and come first; mode `k` is labelled `node = k, dir = mode`.
@@ -75,10 +85,7 @@ impl Model {
             // (L⁻¹ K_ii L⁻ᵀ) v = ω² v and φ = L⁻ᵀ v.
             let lm = Mii.cholesky().ok_or(ModelError::MassNotDefinite)?;
             let L = lm.l();
-            let Linv = L
-                .clone()
-                .try_inverse()
-                .ok_or(ModelError::MassNotDefinite)?;
+            let Linv = L.clone().try_inverse().ok_or(ModelError::MassNotDefinite)?;
             let A = &Linv * &Kii * Linv.transpose();
             let A = (&A + A.transpose()) * 0.5;
             let eig = A.symmetric_eigen();
@@ -177,8 +184,16 @@ dt_s = 1.0e-4
         }
         let some = full.craig_bampton(3).unwrap();
         let fs = some.natural_frequencies_hz();
-        assert!((fs[0] - ff[0]).abs() <= 1e-3 * ff[0], "{} vs {}", fs[0], ff[0]);
-        assert_eq!(some.stations[0].dof, b.iter().position(|&i| i == full.stations[0].dof).unwrap());
+        assert!(
+            (fs[0] - ff[0]).abs() <= 1e-3 * ff[0],
+            "{} vs {}",
+            fs[0],
+            ff[0]
+        );
+        assert_eq!(
+            some.stations[0].dof,
+            b.iter().position(|&i| i == full.stations[0].dof).unwrap()
+        );
         assert_eq!(some.Lc.column(0).iter().filter(|&&x| x != 0.0).count(), 1);
     }
 }

@@ -724,7 +724,7 @@ fn online_estimator(
     estimated: &[bool],
     warmup: &TestData,
 ) -> Result<Box<dyn ResidualEstimator>, LiveError> {
-    let model = Model::assemble(setup)?;
+    let model = Model::for_identification(setup)?;
     let mut opts = IdentifyOptions::from_setup(setup);
     check_observability(setup, &model, &opts)?;
     let params = setup.initial_params();
@@ -1416,7 +1416,7 @@ pub fn run(
     }
     // Fail early on an unusable setup (observability), before subscribing.
     {
-        let model = Model::assemble(setup)?;
+        let model = Model::for_identification(setup)?;
         check_observability(setup, &model, &IdentifyOptions::from_setup(setup))?;
     }
     let sub_stop = Arc::new(AtomicBool::new(false));
