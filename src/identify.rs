@@ -668,6 +668,14 @@ pub fn identify(
         output_error: None,
         notes: Vec::new(),
     };
+    if setup.estimator.reduce_modes.is_some() {
+        // Say so: the reduction's bias is not in the standard errors.
+        let kept = crate::model::reduce::boundary_dofs(&model).len();
+        result.notes.push(format!(
+            "identified on a Craig–Bampton reduction of the model: {kept} physical DOFs + {} fixed-interface modes (`reduce_modes`); the truncated modes' bias is not in the standard errors",
+            model.n() - kept
+        ));
+    }
     let q = setup.connections.len();
     let mut frozen: Option<KalmanTuning> = None;
     let mut plain_streak = 0usize;

@@ -96,7 +96,7 @@ fn paper_estimator_diverges_on_the_fifty_element_model() {
     let res = identify(&s, &d, &opts, Some(&sim.truth), &mut |_| {}, &mut |_, _| {});
     if let Ok(id) = res {
         let e = rel(&id, 0);
-        assert!(!(e.abs() < 0.5), "paper spring error {e}");
+        assert!(e.is_nan() || e.abs() >= 0.5, "paper spring error {e}");
     }
 }
 

@@ -32,12 +32,11 @@ use crate::setup::{Dir, DofRef};
 /// station, ascending.
 pub fn boundary_dofs(model: &Model) -> Vec<usize> {
     let n = model.n();
-    let mut keep = vec![false; n];
-    for i in 0..n {
-        let touched =
-            model.Lp.row(i).iter().any(|&x| x != 0.0) || model.Lc.row(i).iter().any(|&x| x != 0.0);
-        keep[i] = touched;
-    }
+    let mut keep: Vec<bool> = (0..n)
+        .map(|i| {
+            model.Lp.row(i).iter().any(|&x| x != 0.0) || model.Lc.row(i).iter().any(|&x| x != 0.0)
+        })
+        .collect();
     for s in &model.stations {
         keep[s.dof] = true;
     }
