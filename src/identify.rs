@@ -1028,12 +1028,14 @@ fn run_pass(
             &data.response[i],
             &mut out,
         )? {
+            diverged_at(&out)?;
             acc.push(&out);
             tracker.push(&out);
             on_sample(&out);
         }
     }
     while est.drain(&mut out) {
+        diverged_at(&out)?;
         acc.push(&out);
         tracker.push(&out);
         on_sample(&out);
@@ -1095,6 +1097,30 @@ fn run_pass(
         force_scales,
     };
     Ok((report, track, used_tuning))
+}
+
+/// A residual force or connection state that is not finite, or so large that its square
+/// overflows (> 1e150), means the estimator's error recursion blew up (the paper's on the
+/// 50-element model: ×1e14 per 100 samples): say that, rather than let the rows reach the
+/// fit and report it as singular.
+fn diverged_at(out: &StepOutput) -> Result<(), EstimateError> {
+    const TOO_LARGE: f64 = 1e150;
+    let mut worst = 0.0f64;
+    for v in [&out.residual, &out.delta, &out.delta_v, &out.force] {
+        for &x in v.iter() {
+            if !x.is_finite() {
+                return Err(EstimateError::Diverged { sample: out.sample });
+            }
+            worst = worst.max(x.abs());
+        }
+    }
+    if worst > TOO_LARGE {
+        return Err(EstimateError::Overflowed {
+            sample: out.sample,
+            magnitude: worst,
+        });
+    }
+    Ok(())
 }
 
 /// Convert a step output to a record.

@@ -35,6 +35,10 @@ pub enum EstimateError {
     },
     #[error("the estimate diverged at sample {sample}: the model state is no longer finite")]
     Diverged { sample: u64 },
+    #[error(
+        "the estimate diverged at sample {sample}: the residual force or connection state reached {magnitude:.1e}, too large to square in the parameter fit (the estimator's error recursion is unstable; see its spectral radius)"
+    )]
+    Overflowed { sample: u64, magnitude: f64 },
     #[error(transparent)]
     Integrate(#[from] crate::integrate::IntegrateError),
 }
