@@ -82,14 +82,10 @@ fn paper(s: &Setup, data: &TestData, truth: &[f64], peak_force: f64) -> String {
                 .join(", "),
             None => "no parameters".into(),
         },
-        Err(e) => {
-            let e = e.to_string();
-            if e.contains("singular") {
-                "fails (no finite fit rows)".into()
-            } else {
-                format!("fails: {}", e.chars().take(60).collect::<String>())
-            }
-        }
+        Err(e) => format!(
+            "stops: {}",
+            e.to_string().chars().take(90).collect::<String>()
+        ),
     };
     format!(
         "ρ {rho:.4}, |R| > 100× peak force at sample {}; identification {outcome}",
