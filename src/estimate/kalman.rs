@@ -57,8 +57,6 @@ pub struct KalmanEstimator {
     gamma: DMatrix<f64>,
     /// Evaluate the non-linear connection force at the predicted state (see `step`).
     semi_implicit: bool,
-    /// DOFs carrying a dummy displacement measurement (u = 0), see [`dummy_displacements`].
-    dummy: Vec<usize>,
     dd: DVector<f64>,
     ddv: DVector<f64>,
     dda: DVector<f64>,
@@ -168,22 +166,16 @@ impl KalmanEstimator {
         let qx = &gamma_all * gamma_all.transpose() * opts.model_error_std.powi(2);
         let mut qv = Q.view_mut((0, 0), (3 * n, 3 * n));
         qv += qx;
-        let dummy = dummy_displacements(model, &stations, &inp.channel_sigma);
-        let mt = m + dummy.len();
-        let H = DMatrix::from_fn(mt, nz, |i, j| {
-            let col = if i < m {
-                stations.state_index(i, n)
+        let H = DMatrix::from_fn(m, nz, |i, j| {
+            if stations.state_index(i, n) == j {
+                1.0
             } else {
-                dummy[i - m].0
-            };
-            if col == j { 1.0 } else { 0.0 }
+                0.0
+            }
         });
         let V = DMatrix::from_diagonal(&DVector::from_iterator(
-            mt,
-            inp.channel_sigma
-                .iter()
-                .map(|s| s * s)
-                .chain(dummy.iter().map(|d| d.1 * d.1)),
+            m,
+            inp.channel_sigma.iter().map(|s| s * s),
         ));
         let P = solve_filter_dare(&A, &H, &Q, &V);
         let S = &H * &P * H.transpose() + &V;
@@ -277,10 +269,6 @@ impl KalmanEstimator {
             diag.warnings
                 .push(format!("Kalman closed loop spectral radius {rho:.6} ≥ 1"));
         }
-        for (dof, sd) in &dummy {
-            diag.tuning
-                .push((format!("dummy_displacement_std_m[dof {dof}]"), *sd));
-        }
         for c in 0..q {
             diag.tuning
                 .push((format!("posterior_delta_std_m[{c}]"), delta_std[c]));
@@ -310,12 +298,11 @@ impl KalmanEstimator {
             dda: DVector::zeros(q),
             z: DVector::zeros(nz),
             zp: DVector::zeros(nz),
-            innov: DVector::zeros(mt),
-            dummy: dummy.iter().map(|d| d.0).collect(),
+            innov: DVector::zeros(m),
             dz: DVector::zeros(nz),
             lin: DVector::zeros(q),
             hist_pred: Vec::with_capacity(store * nz),
-            hist_innov: Vec::with_capacity(store * mt),
+            hist_innov: Vec::with_capacity(store * m),
             hist_g: Vec::with_capacity(store * q),
             hist_sample: Vec::with_capacity(store),
             drain_pos: 0,
@@ -337,7 +324,7 @@ impl KalmanEstimator {
 
     /// Mean normalised innovation squared per channel (≈ 1 when the tuning is consistent).
     pub fn mean_nis(&self) -> f64 {
-        self.nis_sum / (self.nis_count.max(1) * self.innov.len()) as f64
+        self.nis_sum / (self.nis_count.max(1) * self.stations.m()) as f64
     }
 
     fn emit(&mut self, sample: u64, z: &[f64], g: &[f64], out: &mut StepOutput) {
@@ -370,72 +357,6 @@ fn force_scale(inp: &EstimatorInputs<'_>) -> f64 {
 /// [`force_scale`] of a model: `1e-5 ×` its largest diagonal stiffness (N per 10 µm).
 pub fn force_scale_of(model: &crate::model::Model) -> f64 {
     1e-5 * model.K.diagonal().amax().max(1.0)
-}
-
-/// Corner of the dummy displacement measurements relative to the model's lowest natural
-/// frequency (see [`dummy_displacements`]).
-pub const DUMMY_CORNER_RELATIVE: f64 = 0.1;
-
-/// Dummy displacement measurements (Naets, Cuadrado & Desmet 2015) for accelerometer-only
-/// stations: why — with accelerations only, a static deformation balanced by a static
-/// residual force is unobservable, and the joint input–state estimate drifts along it at low
-/// frequency (Lourens et al. 2012); on the two-beam problem that drift made the pass-1 fit
-/// of the joint stiffness −100 % even on noise-free data. Each acceleration channel whose DOF
-/// has no displacement channel gets a pseudo-measurement `u = 0` with std
-/// `σ_a / ω_c²` (m), `σ_a` the channel's noise std (m/s²) and `ω_c` =
-/// [`DUMMY_CORNER_RELATIVE`] × the lowest natural frequency (rad/s): it carries the
-/// accelerometer's information at `ω_c`, so it anchors only what lies below the structure's
-/// first mode. Returns (DOF, std) per dummy row; empty when every such station also measures
-/// displacement or the model's lowest frequency is not positive (a free-floating model).
-pub fn dummy_displacements(
-    model: &crate::model::Model,
-    stations: &Stations,
-    channel_sigma: &[f64],
-) -> Vec<(usize, f64)> {
-    use crate::setup::Quantity;
-    let corner = std::env::var("JOINTID_DUMMY_CORNER")
-        .ok()
-        .and_then(|x| x.parse::<f64>().ok())
-        .unwrap_or(DUMMY_CORNER_RELATIVE);
-    let mut out: Vec<(usize, f64)> = Vec::new();
-    for (k, &(dof, qty)) in stations.channels.iter().enumerate() {
-        if qty != Quantity::Acceleration
-            || corner <= 0.0
-            || stations
-                .channels
-                .iter()
-                .any(|&(d, q)| d == dof && q == Quantity::Displacement)
-            || out.iter().any(|&(d, _)| d == dof)
-        {
-            continue;
-        }
-        let Some(&sigma) = channel_sigma.get(k) else {
-            continue;
-        };
-        out.push((dof, sigma));
-    }
-    if out.is_empty() {
-        return out;
-    }
-    let Some(w1) = lowest_natural_frequency(model) else {
-        return Vec::new();
-    };
-    let wc = corner * w1;
-    for d in &mut out {
-        d.1 /= wc * wc;
-    }
-    out
-}
-
-/// Lowest undamped natural frequency (rad/s) of `M ü + K u = 0`, or `None` when M is not
-/// positive definite or the lowest eigenvalue is not positive.
-fn lowest_natural_frequency(model: &crate::model::Model) -> Option<f64> {
-    let chol = model.M.clone().cholesky()?;
-    let linv = chol.l().try_inverse()?;
-    let a = &linv * &model.K * linv.transpose();
-    let a = (&a + a.transpose()) * 0.5;
-    let lmin = a.symmetric_eigenvalues().min();
-    (lmin > 0.0).then(|| lmin.sqrt())
 }
 
 /// Model-error force std at every DOF relative to the force scale.
@@ -508,17 +429,11 @@ impl ResidualEstimator for KalmanEstimator {
         for (k, &(dof, qty)) in self.stations.channels.iter().enumerate() {
             self.innov[k] = measured[k] - self.pred.channel(dof, qty);
         }
-        // Dummy displacement measurements: u = 0 at the accelerometer-only stations.
-        let m = self.stations.m();
-        for (j, &dof) in self.dummy.iter().enumerate() {
-            self.innov[m + j] = -self.pred.u[dof];
-        }
-        let mt = self.innov.len();
         // Likelihood bookkeeping.
         self.dz
-            .rows_mut(0, mt)
+            .rows_mut(0, self.stations.m())
             .gemv(1.0, &self.innov_inv, &self.innov, 0.0);
-        self.nis_sum += self.innov.dot(&self.dz.rows(0, mt));
+        self.nis_sum += self.innov.dot(&self.dz.rows(0, self.stations.m()));
         self.nis_count += 1;
         // Update.
         self.z.copy_from(&self.zp);
