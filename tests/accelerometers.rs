@@ -77,8 +77,9 @@ fn rms(x: impl Iterator<Item = f64>) -> f64 {
 }
 
 /// `simulate` writes accelerations consistent with its velocities (64 sub-steps per
-/// sample: the central difference of the velocity channel matches the acceleration channel
-/// at the same station), and additive noise is the stated fraction of each acceleration
+/// sample, a 50 Hz sine so that the sampling resolves the response: the central difference
+/// of the velocity channel matches the acceleration channel at the same station; a sign
+/// error or a one-sample shift would be ≥ 30 % off), and additive noise is the stated fraction of each acceleration
 /// channel's own RMS.
 #[test]
 fn simulated_acceleration_channels_are_consistent() {
@@ -88,9 +89,25 @@ fn simulated_acceleration_channels_are_consistent() {
     let accel = setup("two-beam-accel.toml", &["u"], &[3.0e5], 1);
     let spring = setup("two-beam-spring.toml", &["u"], &[3.0e5], 1);
     let (steps, sub) = (600, 64);
-    let a = sim(&accel, steps, sub, Noise::None, 3);
-    let v = sim(&spring, steps, sub, Noise::None, 3);
-    assert_eq!(a.excitation, v.excitation, "same seed, same excitation");
+    let sine = |s: &Setup| {
+        simulate(
+            s,
+            &SimulateOptions {
+                scenario: Scenario::Sine {
+                    freq_hz: 50.0,
+                    amplitude: 2e4,
+                },
+                steps,
+                dt_s: s.dt_s,
+                substeps: sub,
+                noise: Noise::None,
+                seed: 3,
+            },
+        )
+        .unwrap()
+    };
+    let (a, v) = (sine(&accel), sine(&spring));
+    assert_eq!(a.excitation, v.excitation, "same excitation");
     let dt = accel.dt_s;
     // Station k: acceleration channel k of `accel`, velocity channel 2k+1 of `spring`.
     for k in 0..6 {
