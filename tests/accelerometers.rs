@@ -126,15 +126,16 @@ fn simulated_acceleration_channels_are_consistent() {
     let noisy = sim(&mixed, steps, sub, Noise::Additive(0.1), 4);
     for k in 0..6 {
         let clean = rms(noisy.clean_response.iter().map(|y| y[k]));
-        let noise = rms(
-            noisy
-                .response
-                .iter()
-                .zip(&noisy.clean_response)
-                .map(|(y, c)| y[k] - c[k]),
-        );
+        let noise = rms(noisy
+            .response
+            .iter()
+            .zip(&noisy.clean_response)
+            .map(|(y, c)| y[k] - c[k]));
         let ratio = noise / clean;
-        assert!((ratio - 0.1).abs() < 0.02, "channel {k}: noise {ratio} of RMS");
+        assert!(
+            (ratio - 0.1).abs() < 0.02,
+            "channel {k}: noise {ratio} of RMS"
+        );
     }
 }
 
@@ -148,7 +149,11 @@ fn accelerometers_only_noise_free_own_discretisation() {
     let paper = run(&s, &d, EstimatorKind::Paper);
     assert!(rel(&paper, 0).abs() < 1e-6, "paper {:.3e}", rel(&paper, 0));
     let kalman = run(&s, &d, EstimatorKind::Kalman);
-    assert!(rel(&kalman, 0).abs() < 1e-3, "kalman {:.3e}", rel(&kalman, 0));
+    assert!(
+        rel(&kalman, 0).abs() < 1e-3,
+        "kalman {:.3e}",
+        rel(&kalman, 0)
+    );
 }
 
 /// Mixed layout (acceleration, velocity and displacement stations), continuous data
@@ -166,10 +171,19 @@ fn mixed_layout_continuous_spring() {
 /// spring: recovered.
 #[test]
 fn mixed_layout_noise_free_friction_and_spring() {
-    let s = setup("two-beam-mixed.toml", &["sign(v)", "u"], &[3000.0, 3.0e5], 1);
+    let s = setup(
+        "two-beam-mixed.toml",
+        &["sign(v)", "u"],
+        &[3000.0, 3.0e5],
+        1,
+    );
     let d = sim(&s, 800, 1, Noise::None, 5);
     let id = run(&s, &d, EstimatorKind::Kalman);
     for j in 0..2 {
-        assert!(rel(&id, j).abs() < 1e-4, "parameter {j}: {:.3e}", rel(&id, j));
+        assert!(
+            rel(&id, j).abs() < 1e-4,
+            "parameter {j}: {:.3e}",
+            rel(&id, j)
+        );
     }
 }
