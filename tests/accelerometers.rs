@@ -154,6 +154,16 @@ fn accelerometers_only_noise_free_own_discretisation() {
         "kalman {:.3e}",
         rel(&kalman, 0)
     );
+    // The layout is flagged (continuous data are not identified from accelerations only).
+    assert!(
+        kalman.passes[0]
+            .diagnostics
+            .warnings
+            .iter()
+            .any(|w| w.starts_with("accelerations only")),
+        "{:?}",
+        kalman.passes[0].diagnostics.warnings
+    );
 }
 
 /// Mixed layout (acceleration, velocity and displacement stations), continuous data
@@ -164,6 +174,13 @@ fn mixed_layout_continuous_spring() {
     let d = sim(&s, 2000, 64, Noise::Additive(0.1), 1);
     let id = run(&s, &d, EstimatorKind::Kalman);
     eprintln!("spring {:.4} %", 100.0 * rel(&id, 0));
+    assert!(
+        !id.passes[0]
+            .diagnostics
+            .warnings
+            .iter()
+            .any(|w| w.starts_with("accelerations only"))
+    );
     assert!(rel(&id, 0).abs() < 0.01, "spring {}", rel(&id, 0));
 }
 
