@@ -269,6 +269,22 @@ impl KalmanEstimator {
             diag.warnings
                 .push(format!("Kalman closed loop spectral radius {rho:.6} ≥ 1"));
         }
+        // Measured (README "Accelerometers only"): with accelerations only, the joint
+        // deformation is nearly unobservable and continuous data end ~100 % off with a small
+        // stated error; say so rather than let the figures look confident.
+        if m > 0
+            && stations
+                .channels
+                .iter()
+                .all(|&(_, qty)| qty == crate::setup::Quantity::Acceleration)
+        {
+            diag.warnings.push(
+                "accelerations only: the joint deformation is nearly unobservable; on \
+                 continuous data the parameters were measured ~100 % off with small stated \
+                 errors — add a displacement or velocity channel"
+                    .into(),
+            );
+        }
         for c in 0..q {
             diag.tuning
                 .push((format!("posterior_delta_std_m[{c}]"), delta_std[c]));
