@@ -82,7 +82,7 @@ fn main() -> ExitCode {
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", jointid::app::error_line(e.as_ref()));
             ExitCode::FAILURE
         }
     }

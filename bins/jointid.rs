@@ -192,7 +192,7 @@ fn main() -> ExitCode {
     match run(cli) {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", jointid::app::error_line(e.as_ref()));
             ExitCode::FAILURE
         }
     }

@@ -63,6 +63,23 @@ fn channel_info(names: impl Iterator<Item = (String, String)>) -> ChannelInfo {
     ChannelInfo { names, units }
 }
 
+/// One line for an error and its causes, each cause only where the message before it does
+/// not already say it (our errors embed their source, `"{path}: {source}"`, so anyhow's
+/// `{:#}` would print it twice).
+pub fn error_line(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut line = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        let text = c.to_string();
+        if !line.contains(&text) {
+            line.push_str(": ");
+            line.push_str(&text);
+        }
+        cause = c.source();
+    }
+    line
+}
+
 pub fn excitation_channels(setup: &Setup) -> ChannelInfo {
     channel_info(
         setup
@@ -515,4 +532,20 @@ pub fn inspect(path: &Path) -> Result<Inspection, AppError> {
         damage: stream.damage().map(str::to_string),
         error,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn error_line_says_each_cause_once() {
+        let e = AppError::Identify {
+            path: "x.mcap".into(),
+            source: crate::identify::IdentifyError::TooShort(2),
+        };
+        let line = error_line(&e);
+        assert_eq!(line.matches("at least 3 are needed").count(), 1, "{line}");
+        assert!(line.starts_with("x.mcap: "), "{line}");
+    }
 }

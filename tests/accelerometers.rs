@@ -54,6 +54,14 @@ fn sim(s: &Setup, steps: usize, data_substeps: usize, noise: Noise, seed: u64) -
 }
 
 fn run(s: &Setup, d: &Simulated, kind: EstimatorKind) -> Identification {
+    try_run(s, d, kind).unwrap()
+}
+
+fn try_run(
+    s: &Setup,
+    d: &Simulated,
+    kind: EstimatorKind,
+) -> Result<Identification, jointid::identify::IdentifyError> {
     let n = d.response.len();
     let data = TestData {
         samples: (0..n as u64).collect(),
@@ -63,7 +71,7 @@ fn run(s: &Setup, d: &Simulated, kind: EstimatorKind) -> Identification {
     };
     let mut opts = IdentifyOptions::from_setup(s);
     opts.estimator = kind;
-    identify(s, &data, &opts, Some(&d.truth), &mut |_| {}, &mut |_, _| {}).unwrap()
+    identify(s, &data, &opts, Some(&d.truth), &mut |_| {}, &mut |_, _| {})
 }
 
 fn rel(id: &Identification, j: usize) -> f64 {
@@ -140,29 +148,38 @@ fn simulated_acceleration_channels_are_consistent() {
 }
 
 /// Accelerometers only, noise-free data from the model's own discretisation (1 sub-step):
-/// the paper's estimator (its S is well conditioned for accelerations) and the default
-/// recover the spring.
+/// the paper's estimator (its S is well conditioned for accelerations) recovers the spring;
+/// the default refuses the layout, naming the reason, because on continuous data it was
+/// measured ~100 % off with a small stated error (README "Accelerometers only").
 #[test]
-fn accelerometers_only_noise_free_own_discretisation() {
+fn accelerometers_only_paper_exact_default_refuses() {
     let s = setup("two-beam-accel.toml", &["u"], &[3.0e5], 1);
     let d = sim(&s, 800, 1, Noise::None, 1);
     let paper = run(&s, &d, EstimatorKind::Paper);
     assert!(rel(&paper, 0).abs() < 1e-6, "paper {:.3e}", rel(&paper, 0));
-    let kalman = run(&s, &d, EstimatorKind::Kalman);
+    let err = try_run(&s, &d, EstimatorKind::Kalman)
+        .expect_err("the default estimator must refuse an accelerometer-only layout")
+        .to_string();
     assert!(
-        rel(&kalman, 0).abs() < 1e-3,
-        "kalman {:.3e}",
-        rel(&kalman, 0)
+        err.contains("all 6 measured channels are accelerations")
+            && err.contains("add a displacement or velocity channel"),
+        "{err}"
     );
-    // The layout is flagged (continuous data are not identified from accelerations only).
+}
+
+/// Mixed layout at 50 % noise (continuous data, 2,000 samples): the joint deformation is
+/// not determined (posterior std of δ 1.6× the RMS of δ̂; the fit used to end −39 % off with
+/// a 0.3 % stated error): refused with the figures.
+#[test]
+fn mixed_layout_at_high_noise_is_refused_as_undetermined() {
+    let s = setup("two-beam-mixed.toml", &["u"], &[3.0e5], 16);
+    let d = sim(&s, 2000, 64, Noise::Additive(0.5), 1);
+    let err = try_run(&s, &d, EstimatorKind::Kalman)
+        .expect_err("must be refused")
+        .to_string();
     assert!(
-        kalman.passes[0]
-            .diagnostics
-            .warnings
-            .iter()
-            .any(|w| w.starts_with("accelerations only")),
-        "{:?}",
-        kalman.passes[0].diagnostics.warnings
+        err.contains("do not determine the joint deformation") && err.contains("posterior std"),
+        "{err}"
     );
 }
 

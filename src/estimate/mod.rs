@@ -39,6 +39,10 @@ pub enum EstimateError {
         "the estimate diverged at sample {sample}: the residual force or connection state reached {magnitude:.1e}, too large to square in the parameter fit (the estimator's error recursion is unstable; see its spectral radius)"
     )]
     Overflowed { sample: u64, magnitude: f64 },
+    #[error(
+        "all {channels} measured channels are accelerations: the default (kalman) estimator does not determine the joint deformation from accelerations alone (measured on continuous data: the spring ~100 % off with a small stated error); add a displacement or velocity channel near the joint, or use `--estimator paper` on noise-free data of the model's own discretisation (README, \"Accelerometers only\")"
+    )]
+    AccelerationOnly { channels: usize },
     #[error(transparent)]
     Integrate(#[from] crate::integrate::IntegrateError),
 }
