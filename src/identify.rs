@@ -296,6 +296,10 @@ pub fn build_estimator(
     };
     Ok(match opts.estimator {
         EstimatorKind::Paper => Box::new(PaperEstimator::new(inputs)?),
+        // The Kalman estimator is dense (its covariance is 3n × 3n anyway).
+        EstimatorKind::Kalman if !model.has_dense() => {
+            return Err(EstimateError::NeedsDense { dofs: model.n() });
+        }
         EstimatorKind::Kalman => {
             use crate::estimate::kalman::{
                 KalmanEstimator, KalmanOptions, MODEL_ERROR_RELATIVE, force_scale_of,

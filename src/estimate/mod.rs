@@ -35,6 +35,10 @@ pub enum EstimateError {
     },
     #[error("the estimate diverged at sample {sample}: the model state is no longer finite")]
     Diverged { sample: u64 },
+    #[error(
+        "the model has {dofs} DOFs and was assembled in sparse form only (no dense M, C, K): only the paper estimator with `[integrator] step = \"sparse\"` (or \"auto\") can run on it"
+    )]
+    NeedsDense { dofs: usize },
     #[error(transparent)]
     Integrate(#[from] crate::integrate::IntegrateError),
 }

@@ -592,6 +592,7 @@ mod tests {
             stations: Vec::new(),
             rayleigh: (alpha, beta),
             step: StepKind::Auto,
+            sparse: None,
         }
     }
 
