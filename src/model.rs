@@ -107,9 +107,17 @@ enum FullDof {
 }
 
 impl Model {
+    /// Assemble the setup's model. Above [`DENSE_MAX_DOFS`] DOFs, when nothing needs
+    /// condensing, only the sparse form is built ([`Model::sparse`]).
     pub fn assemble(setup: &Setup) -> Result<Model, ModelError> {
+        Self::assemble_with(setup, DENSE_MAX_DOFS)
+    }
+
+    /// [`Model::assemble`] with the size above which the model is kept in sparse form only
+    /// (tests compare the two forms on small models).
+    pub fn assemble_with(setup: &Setup, dense_max_dofs: usize) -> Result<Model, ModelError> {
         if let Some(ext) = &setup.external {
-            return Self::assemble_external(setup, ext);
+            return Self::assemble_external(setup, ext, dense_max_dofs);
         }
         let m = &setup.model;
         // Node positions, including beam interior nodes.
@@ -261,7 +269,7 @@ impl Model {
             CsrMatrix::from_triplets(nf, &K),
             CsrMatrix::from_triplets(nf, &Cd),
         );
-        if let Some(m) = finish_sparse(setup, &labels, &M, &K, &Cd, &find)? {
+        if let Some(m) = finish_sparse(setup, &labels, &M, &K, &Cd, &find, dense_max_dofs)? {
             return Ok(m);
         }
         finish(setup, labels, M.to_dense(), K.to_dense(), Cd.to_dense(), find)
@@ -274,6 +282,7 @@ impl Model {
     fn assemble_external(
         setup: &Setup,
         ext: &crate::matrix_market::ExternalModel,
+        dense_max_dofs: usize,
     ) -> Result<Model, ModelError> {
         let nf = ext.dofs.len();
         let labels = ext.dofs.clone();
@@ -285,7 +294,7 @@ impl Model {
                 || CsrMatrix::zeros(nf),
                 |c| CsrMatrix::from_triplets(nf, &c.entries),
             );
-            if is_big_without_condensation(&M) {
+            if is_big_without_condensation(&M, dense_max_dofs) {
                 let tau = 1e-9 * (0..nf).map(|i| K.get(i, i).abs()).fold(0.0, f64::max);
                 let shifted = K.lin_comb(1.0, &CsrMatrix::identity(nf), tau);
                 if EnvelopeCholesky::factor(&shifted).is_none() {
@@ -294,7 +303,7 @@ impl Model {
                         tau,
                     });
                 }
-                if let Some(m) = finish_sparse(setup, &labels, &M, &K, &Cd, &find)? {
+                if let Some(m) = finish_sparse(setup, &labels, &M, &K, &Cd, &find, dense_max_dofs)? {
                     return Ok(m);
                 }
             }
@@ -416,8 +425,8 @@ fn finish(
 
 /// Whether a model is assembled in sparse form only: more than [`DENSE_MAX_DOFS`] DOFs and
 /// every DOF carries mass (nothing to condense).
-fn is_big_without_condensation(M: &CsrMatrix) -> bool {
-    M.n > DENSE_MAX_DOFS && (0..M.n).all(|i| !M.row_is_zero(i))
+ fn is_big_without_condensation(M: &CsrMatrix, dense_max_dofs: usize) -> bool {
+    M.n > dense_max_dofs && (0..M.n).all(|i| !M.row_is_zero(i))
 }
 
 /// The sparse-only model (see [`Model::sparse`]), or `None` when the model is small or
@@ -430,8 +439,9 @@ fn finish_sparse(
     K: &CsrMatrix,
     Cd: &CsrMatrix,
     find: &impl Fn(&DofRef) -> Option<usize>,
+    dense_max_dofs: usize,
 ) -> Result<Option<Model>, ModelError> {
-    if !is_big_without_condensation(M) {
+    if !is_big_without_condensation(M, dense_max_dofs) {
         return Ok(None);
     }
     let n = M.n;

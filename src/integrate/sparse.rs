@@ -199,3 +199,145 @@ impl SparseStep {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::integrate::Stepper;
+    use crate::integrate::fast::{ModalState, ModalStep};
+    use crate::setup::{Dir, DofRef, StepKind};
+    use rand::{RngExt, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// A random banded model with its DOFs shuffled (so the RCM ordering is exercised):
+    /// diagonal or banded SPD mass, banded PSD stiffness (a chain of random springs of
+    /// random reach, grounded at one DOF), Rayleigh damping, optionally two dashpots.
+    fn banded_model(rng: &mut ChaCha8Rng, n: usize, reach: usize, dashpots: bool) -> Model {
+        let mut perm: Vec<usize> = (0..n).collect();
+        for i in (1..n).rev() {
+            let j = rng.random_range(0..=i);
+            perm.swap(i, j);
+        }
+        let mut M = DMatrix::zeros(n, n);
+        let mut K = DMatrix::zeros(n, n);
+        for i in 0..n {
+            M[(perm[i], perm[i])] += rng.random_range(0.01..0.02);
+            for d in 1..=reach {
+                if i + d < n {
+                    let (a, b) = (perm[i], perm[i + d]);
+                    let k = rng.random_range(0.5e6..1.5e6);
+                    K[(a, a)] += k;
+                    K[(b, b)] += k;
+                    K[(a, b)] -= k;
+                    K[(b, a)] -= k;
+                    if d == 1 && rng.random_range(0.0..1.0) < 0.5 {
+                        // A consistent-mass-like coupling keeps M banded, SPD.
+                        let m = rng.random_range(0.0..0.002);
+                        M[(a, a)] += 2.0 * m;
+                        M[(b, b)] += 2.0 * m;
+                        M[(a, b)] += m;
+                        M[(b, a)] += m;
+                    }
+                }
+            }
+        }
+        K[(perm[0], perm[0])] += 1e4;
+        let (alpha, beta) = (2.0, 1e-7);
+        let mut C = &M * alpha + &K * beta;
+        if dashpots {
+            C[(perm[1], perm[1])] += 3.0;
+            let (a, b) = (perm[2], perm[3]);
+            C[(a, a)] += 2.0;
+            C[(b, b)] += 2.0;
+            C[(a, b)] -= 2.0;
+            C[(b, a)] -= 2.0;
+        }
+        let mut Lp = DMatrix::zeros(n, 2);
+        Lp[(perm[0], 0)] = 1.0;
+        Lp[(perm[n / 2], 1)] = 1.0;
+        let mut Lc = DMatrix::zeros(n, 2);
+        Lc[(perm[n / 3], 0)] = 1.0;
+        Lc[(perm[n - 1], 1)] = 1.0;
+        Lc[(perm[n - 2], 1)] = -1.0;
+        Model {
+            dofs: (0..n as u32)
+                .map(|node| DofRef { node, dir: Dir::W })
+                .collect(),
+            M,
+            C,
+            K,
+            Lp,
+            Lc,
+            stations: Vec::new(),
+            rayleigh: (alpha, beta),
+            step: StepKind::Sparse,
+            sparse: None,
+        }
+    }
+
+    fn rel(a: &DVector<f64>, b: &DVector<f64>) -> f64 {
+        (a - b).amax() / b.amax().max(1e-300)
+    }
+
+    #[test]
+    fn sparse_map_equals_the_dense_and_modal_maps_on_random_banded_models() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let nm = Newmark {
+            gamma: 0.5,
+            beta: 0.25,
+        };
+        let mut used_rcm = 0;
+        for case in 0..18 {
+            let n = 8 + 5 * case;
+            let reach = 1 + case % 3;
+            let model = banded_model(&mut rng, n, reach, case % 2 == 1);
+            let substeps = 1 + case % 3;
+            let dt = 1.953125e-5;
+            let mut dense = Stepper::new(&model, dt, substeps, nm).unwrap();
+            let mut sparse = SparseStep::new(&model, dt, substeps, nm).unwrap();
+            let mut modal = ModalStep::new(&model, dt, substeps, nm).unwrap();
+            used_rcm += usize::from(sparse.meff.rcm);
+            // Little fill: the envelope stays within a band of a few times the reach.
+            assert!(
+                sparse.meff.nnz() <= n * (4 * reach + 2),
+                "case {case}: envelope {} for n {n}",
+                sparse.meff.nnz()
+            );
+            let mut xd = State::zeros(n);
+            for i in 0..n {
+                xd.u[i] = rng.random_range(-1e-3..1e-3);
+                xd.v[i] = rng.random_range(-0.1..0.1);
+                xd.a[i] = rng.random_range(-100.0..100.0);
+            }
+            let mut xs = xd.clone();
+            let mut xm = ModalState {
+                q: modal.to_modal(&model.M, &xd.u),
+                qd: modal.to_modal(&model.M, &xd.v),
+                qdd: modal.to_modal(&model.M, &xd.a),
+            };
+            for _ in 0..5 {
+                let p0 = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)];
+                let p1 = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)];
+                let f = DVector::from_fn(2, |_, _| rng.random_range(-1.0..1.0));
+                dense.advance(&mut xd, &p0, &p1, &f);
+                sparse.advance(&mut xs, &p0, &p1, &f);
+                modal.advance(&mut xm, &p0, &p1, &f);
+            }
+            for (a, b) in [(&xs.u, &xd.u), (&xs.v, &xd.v), (&xs.a, &xd.a)] {
+                assert!(rel(a, b) < 1e-10, "case {case}: sparse vs dense {}", rel(a, b));
+            }
+            let um = &modal.psi * &xm.q;
+            assert!(rel(&xs.u, &um) < 1e-9, "case {case}: sparse vs modal {}", rel(&xs.u, &um));
+            let (gd, gs) = (dense.force_response(), sparse.force_response());
+            assert!((&gd - &gs).amax() <= 1e-10 * gd.amax(), "case {case}: Γ_f");
+            // Initial acceleration.
+            let mut ad = xd.clone();
+            let mut as_ = xd.clone();
+            let f0 = DVector::from_element(2, 0.3);
+            dense.initial_acceleration(&mut ad, &[0.5, -0.2], &f0);
+            sparse.initial_acceleration(&mut as_, &[0.5, -0.2], &f0);
+            assert!(rel(&as_.a, &ad.a) < 1e-10, "case {case}: a₀");
+        }
+        assert!(used_rcm > 10, "the shuffled models should pick RCM: {used_rcm}");
+    }
+}
