@@ -97,16 +97,13 @@ fn modal_and_dense_steps_identify_the_same_parameters_on_the_paper_model() {
 
 #[test]
 fn sparse_and_dense_steps_identify_the_same_parameters_on_the_paper_model() {
-    // Same data and tolerances as the modal comparison above; the spring case also with 4
-    // sub-steps (the sparse step takes them one by one, like the dense one). Not friction
-    // with sub-steps: there the data's implicit friction differs from the estimator's
-    // explicit one, the estimator is no longer exact, and its error recursion amplifies
-    // round-off (see the module docs).
-    for (name, substeps) in [
-        ("two-beam-spring.toml", 1),
-        ("two-beam-spring.toml", 4),
-        ("two-beam-friction.toml", 1),
-    ] {
+    // Same data and tolerances as the modal comparison above, one sub-step per sample: with
+    // sub-steps the simulated data are no longer the estimator's own discretisation (spring
+    // 299,923 instead of 300,000 at 4 sub-steps), the estimator is not exact, and its error
+    // recursion amplifies round-off differences to ~1e-8 relative (see the module docs).
+    // The sub-steps themselves are compared map against map, to 1e-10, in the unit test
+    // `integrate::sparse::tests`.
+    for (name, substeps) in [("two-beam-spring.toml", 1), ("two-beam-friction.toml", 1)] {
         let d = identified(&setup_with(name, "dense", substeps), substeps, 72);
         let s = identified(&setup_with(name, "sparse", substeps), substeps, 72);
         eprintln!("{name}: dense {d:?}\n sparse {s:?}");
