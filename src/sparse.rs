@@ -159,8 +159,8 @@ impl CsrMatrix {
         for (i, yi) in y.iter_mut().enumerate() {
             let (s, e) = (self.row_ptr[i], self.row_ptr[i + 1]);
             let mut acc = 0.0;
-            for k in s..e {
-                acc += self.val[k] * x[self.col[k]];
+            for (v, &c) in self.val[s..e].iter().zip(&self.col[s..e]) {
+                acc += v * x[c];
             }
             *yi = if beta == 0.0 {
                 alpha * acc
@@ -186,6 +186,17 @@ pub struct EnvelopeCholesky {
     first: Vec<usize>,
     start: Vec<usize>,
     l: Vec<f64>,
+    /// The solves' operators, without divisions on their dependency chains: `1/L_ii`; the
+    /// strictly lower part of `L` with row `i` scaled by `1/L_ii` (forward solve, rows in
+    /// envelope form); and `Lᵀ`'s strictly upper part with row `k` scaled by `1/L_kk`,
+    /// row `k` holding columns `k+1..=last[k]` (backward solve). Both solves are then
+    /// row-oriented dot products whose only dependency on the previous row is one
+    /// multiply-add on a value kept in a register.
+    dinv: Vec<f64>,
+    lrow: Vec<f64>,
+    last: Vec<usize>,
+    ustart: Vec<usize>,
+    uval: Vec<f64>,
     /// Whether the RCM ordering was used (else natural).
     pub rcm: bool,
     /// Stored entries of `L` with the natural ordering and with RCM (what the choice saw).
@@ -331,12 +342,37 @@ impl EnvelopeCholesky {
             }
             l[start[i + 1] - 1] = d.sqrt();
         }
+        let dinv: Vec<f64> = (0..n).map(|i| 1.0 / l[start[i + 1] - 1]).collect();
+        let mut lrow = l.clone();
+        let mut last: Vec<usize> = (0..n).collect();
+        for i in 0..n {
+            for k in first[i]..i {
+                lrow[start[i] + k - first[i]] *= dinv[i];
+                last[k] = last[k].max(i);
+            }
+        }
+        let mut ustart = Vec::with_capacity(n + 1);
+        ustart.push(0);
+        for (k, lk) in last.iter().enumerate() {
+            ustart.push(ustart[k] + lk - k);
+        }
+        let mut uval = vec![0.0; ustart[n]];
+        for i in 0..n {
+            for k in first[i]..i {
+                uval[ustart[k] + i - k - 1] = l[start[i] + k - first[i]] * dinv[k];
+            }
+        }
         Some(Self {
             n,
             perm,
             first,
             start,
             l,
+            dinv,
+            lrow,
+            last,
+            ustart,
+            uval,
             rcm: use_rcm,
             envelope_natural: env_nat,
             envelope_rcm: env_rcm,
@@ -348,31 +384,50 @@ impl EnvelopeCholesky {
         self.l.len()
     }
 
+    /// Bytes the solves read: the two scaled copies of `L`, `1/L_ii`, the envelope index
+    /// and the permutation.
+    pub fn solve_bytes(&self) -> usize {
+        (self.lrow.len() + self.uval.len() + self.n) * std::mem::size_of::<f64>()
+            + 5 * self.n * std::mem::size_of::<usize>()
+    }
+
     /// Solve `A x = b` in place on `x` (holding `b`), with `work` of length n. Allocation-free.
     pub fn solve_in_place(&self, x: &mut [f64], work: &mut [f64]) {
         let n = self.n;
         for i in 0..n {
-            work[i] = x[self.perm[i]];
+            work[i] = x[self.perm[i]] * self.dinv[i];
         }
-        // L y = Pb.
+        // L y = Pb: y_i = b_i/L_ii − Σ_k (L_ik/L_ii) y_k; y_{i−1} stays in a register.
+        let mut prev = 0.0;
         for i in 0..n {
             let fi = self.first[i];
-            let row = &self.l[self.start[i]..self.start[i + 1] - 1];
+            let row = &self.lrow[self.start[i]..self.start[i + 1] - 1];
             let mut s = work[i];
-            for (lk, yk) in row.iter().zip(&work[fi..i]) {
-                s -= lk * yk;
+            if let Some((l_last, rest)) = row.split_last() {
+                for (lk, yk) in rest.iter().zip(&work[fi..i - 1]) {
+                    s -= lk * yk;
+                }
+                s -= l_last * prev;
             }
-            work[i] = s / self.l[self.start[i + 1] - 1];
+            work[i] = s;
+            prev = s;
         }
-        // Lᵀ z = y (column-oriented over the rows of L).
+        // Lᵀ z = y: z_i = y_i/L_ii − Σ_{k>i} (L_ki/L_ii) z_k; z_{i+1} stays in a register.
+        for (w, d) in work.iter_mut().zip(&self.dinv) {
+            *w *= d;
+        }
+        let mut next = 0.0;
         for i in (0..n).rev() {
-            let fi = self.first[i];
-            let zi = work[i] / self.l[self.start[i + 1] - 1];
-            work[i] = zi;
-            let row = &self.l[self.start[i]..self.start[i + 1] - 1];
-            for (lk, yk) in row.iter().zip(&mut work[fi..i]) {
-                *yk -= lk * zi;
+            let row = &self.uval[self.ustart[i]..self.ustart[i + 1]];
+            let mut s = work[i];
+            if let Some((u_first, rest)) = row.split_first() {
+                for (uk, zk) in rest.iter().zip(&work[i + 2..self.last[i] + 1]) {
+                    s -= uk * zk;
+                }
+                s -= u_first * next;
             }
+            work[i] = s;
+            next = s;
         }
         for i in 0..n {
             x[self.perm[i]] = work[i];

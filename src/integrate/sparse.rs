@@ -104,8 +104,7 @@ impl SparseStep {
         let (f, u) = (std::mem::size_of::<f64>(), std::mem::size_of::<usize>());
         (self.C.nnz() + self.K.nnz()) * (f + u)
             + 2 * (self.n + 1) * u
-            + self.meff.nnz() * f
-            + 3 * self.n * u
+            + self.meff.solve_bytes()
             + (self.lp.len() + self.lc.len()) * (f + 2 * u)
     }
 
