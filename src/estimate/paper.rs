@@ -58,13 +58,20 @@ pub fn modal_cost_lower_bound(n: usize, channels: usize, q: usize) -> usize {
     n * (15 + channels + 6 * q)
 }
 
+/// Measured weight of one sparse multiply-add against one of the modal map's dense ones
+/// (indirect addressing, and the triangular solves' row-to-row dependency): on the 240-DOF
+/// chains of `examples/bench_model.rs` a sparse operation took 1.7 ns, a modal one
+/// 0.5–0.9 ns (BENCHMARKS.md).
+pub const SPARSE_OP_WEIGHT: usize = 2;
+
 /// `step = "auto"`: the dense step below [`AUTO_MODAL_MIN_DOFS`] (as fast there, and the
 /// shipped results stay bit-identical to the reference); the sparse step when the model has
-/// no dense form; otherwise the sparse step when its operation count per sample
-/// ([`sparse_cost`]) is at most the modal map's lower bound ([`modal_cost_lower_bound`]) —
-/// banded models, where it also saves the O(n³) eigen-decomposition — else the modal map
-/// when the damping allows it, else the sparse step. Checked against the measured steps/s
-/// of `examples/bench_model.rs` (BENCHMARKS.md).
+/// no dense form; otherwise the sparse step when its weighted operation count per sample
+/// (`SPARSE_OP_WEIGHT ×` [`sparse_cost`]) is at most the modal map's lower bound
+/// ([`modal_cost_lower_bound`]) — banded models with many channels, where it also saves
+/// the O(n³) eigen-decomposition — else the modal map when the damping allows it, else the
+/// sparse step. Checked against the measured steps/s of `examples/bench_model.rs`
+/// (BENCHMARKS.md).
 pub enum AutoChoice {
     Dense,
     Modal(ModalStep),
@@ -84,7 +91,8 @@ pub fn choose_auto(
     let sparse = SparseStep::new(model, dt_s, substeps, newmark)?;
     let q = model.Lc.ncols();
     if !model.has_dense()
-        || sparse_cost(&sparse, q) <= modal_cost_lower_bound(n, model.stations.len(), q)
+        || SPARSE_OP_WEIGHT * sparse_cost(&sparse, q)
+            <= modal_cost_lower_bound(n, model.stations.len(), q)
     {
         return Ok(AutoChoice::Sparse(sparse));
     }
