@@ -13,7 +13,9 @@
 //! factorisation, plus Γ_f, S and the gain),
 //! steps per second of `PaperEstimator::step` (predict, station outputs, Eq. 3, update,
 //! connection deformations), the real-time factor at 51.2 kHz (steps/s ÷ 51,200; > 1 is
-//! faster than real time), the bytes of the operators the step uses, and the process RSS
+//! faster than real time), steps per second of the thread's own CPU time (the machine is
+//! shared: this is what a core of its own would give), the bytes of the operators the step
+//! uses, and the process RSS
 //! after set-up. The data fed are zeros: the step's arithmetic does not depend on the
 //! values, and zeros cannot diverge. The dense baseline runs in the same process, on the
 //! same model, up to `--dense-max` DOFs (default 2,400), the modal step up to `--modal-max`
@@ -39,9 +41,27 @@ fn rss_kib() -> (u64, u64) {
     (get("VmRSS:"), get("VmHWM:"))
 }
 
+/// CPU seconds (user + system) this thread has used, from /proc (10 ms ticks).
+fn thread_cpu_s() -> f64 {
+    let s = std::fs::read_to_string("/proc/thread-self/stat").unwrap_or_default();
+    // Fields after the command name's closing parenthesis; utime, stime are 14th, 15th.
+    let rest = s.rsplit_once(')').map_or("", |r| r.1);
+    let f: Vec<f64> = rest
+        .split_whitespace()
+        .filter_map(|x| x.parse().ok())
+        .collect();
+    if f.len() > 13 {
+        (f[11] + f[12]) / 100.0
+    } else {
+        f64::NAN
+    }
+}
+
 struct Run {
     setup_s: f64,
     steps_per_s: f64,
+    /// Steps per second of this thread's CPU time (what a core of its own would give).
+    steps_per_cpu_s: f64,
     operator_bytes: usize,
     rss_mib: f64,
 }
@@ -65,6 +85,7 @@ fn run(setup: &Setup, model: &Model, kind: StepKind, min_time_s: f64) -> Result<
     let mut out = StepOutput::new(q);
     est.start(0, &exc);
     let t0 = Instant::now();
+    let c0 = thread_cpu_s();
     let mut i = 0u64;
     loop {
         for _ in 0..16 {
@@ -77,6 +98,7 @@ fn run(setup: &Setup, model: &Model, kind: StepKind, min_time_s: f64) -> Result<
         }
     }
     let steps_per_s = i as f64 / t0.elapsed().as_secs_f64();
+    let steps_per_cpu_s = i as f64 / (thread_cpu_s() - c0);
     let f = std::mem::size_of::<f64>();
     let operator_bytes = match kind {
         // (M+γhC+βh²K)⁻¹, C, K, M, Lp, Lc, Γ_f (u, v, a).
@@ -94,6 +116,7 @@ fn run(setup: &Setup, model: &Model, kind: StepKind, min_time_s: f64) -> Result<
     Ok(Run {
         setup_s,
         steps_per_s,
+        steps_per_cpu_s,
         operator_bytes,
         rss_mib: rss,
     })
@@ -111,7 +134,7 @@ fn main() {
     let args: Vec<String> = std::env::args().collect();
     let dense_max = list(&args, "--dense-max", &[2400])[0];
     let modal_max = list(&args, "--modal-max", &[2400])[0];
-    let min_time = 0.5;
+    let min_time = 1.0;
     let mut cases: Vec<(String, Setup)> = Vec::new();
     if let Some(i) = args.iter().position(|a| a == "--setup") {
         let p = std::path::PathBuf::from(args.get(i + 1).expect("--setup PATH"));
@@ -134,9 +157,9 @@ fn main() {
         }
     }
     println!(
-        "| model | DOFs | channels | connections | assembly s | dense set-up s | modal set-up s | sparse set-up s | dense steps/s | modal steps/s | sparse steps/s | modal RT factor @51.2 kHz | sparse RT factor @51.2 kHz | modal/dense speed | sparse/dense speed | dense operators MiB | modal operators MiB | sparse operators MiB | RSS after sparse set-up MiB |"
+        "| model | DOFs | channels | connections | assembly s | dense set-up s | modal set-up s | sparse set-up s | dense steps/s | modal steps/s | sparse steps/s | modal RT factor @51.2 kHz | sparse RT factor @51.2 kHz | modal/dense speed | sparse/dense speed | dense operators MiB | modal operators MiB | sparse operators MiB | RSS after sparse set-up MiB | steps per CPU-s dense / modal / sparse |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for (name, setup) in &cases {
         let t0 = Instant::now();
         let model = match Model::assemble(setup) {
@@ -152,7 +175,7 @@ fn main() {
         if m < q {
             // Eq. 3 needs rank(S) = q: fewer channels than connection DOFs cannot work.
             println!(
-                "| {name} | {n} | {m} | {q} | {assembly:.3} | n/a: the paper estimator needs ≥ {q} independent channels for {q} connection DOFs | | | | | | | | | | | | | |"
+                "| {name} | {n} | {m} | {q} | {assembly:.3} | n/a: the paper estimator needs ≥ {q} independent channels for {q} connection DOFs | | | | | | | | | | | | | | |"
             );
             continue;
         }
@@ -203,13 +226,23 @@ fn main() {
         let (ms, msp, rt, mmem, _) = cols(&modal);
         let sparse = Some(sparse);
         let (ss, ssp, srt, smem, rss) = cols(&sparse);
+        let per_cpu = |r: &Option<Result<Run, String>>| match r {
+            Some(Ok(r)) => format!("{:.0}", r.steps_per_cpu_s),
+            _ => "-".into(),
+        };
+        let cpu = format!(
+            "{} / {} / {}",
+            per_cpu(&dense),
+            per_cpu(&modal),
+            per_cpu(&sparse)
+        );
         let ratio = |x: &Option<Result<Run, String>>| match (&dense, x) {
             (Some(Ok(d)), Some(Ok(m))) => format!("{:.1}×", m.steps_per_s / d.steps_per_s),
             _ => "-".into(),
         };
         let (mr, sr) = (ratio(&modal), ratio(&sparse));
         println!(
-            "| {name} | {n} | {} | {} | {assembly:.3} | {ds} | {ms} | {ss} | {dsp} | {msp} | {ssp} | {rt} | {srt} | {mr} | {sr} | {dmem} | {mmem} | {smem} | {rss} |",
+            "| {name} | {n} | {} | {} | {assembly:.3} | {ds} | {ms} | {ss} | {dsp} | {msp} | {ssp} | {rt} | {srt} | {mr} | {sr} | {dmem} | {mmem} | {smem} | {rss} | {cpu} |",
             model.stations.len(),
             model.Lc.ncols(),
         );

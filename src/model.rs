@@ -19,8 +19,8 @@ pub mod synthetic;
 
 use nalgebra::{DMatrix, DVector};
 
-use crate::sparse::{CsrMatrix, EnvelopeCholesky};
 use crate::setup::{Dir, DofRef, LinkSpec, MassKind, Quantity, Setup};
+use crate::sparse::{CsrMatrix, EnvelopeCholesky};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {
@@ -227,36 +227,35 @@ impl Model {
                 M.push((i, i, ms.inertia));
             }
         }
-        let add_link =
-            |mat: &mut Entries, l: &LinkSpec, what: &str| -> Result<(), ModelError> {
-                let (a, b) = match (&l.dof, &l.between) {
-                    (Some(d), _) => (*d, None),
-                    (None, Some([a, b])) => (*a, Some(*b)),
-                    (None, None) => unreachable!("validated in setup"),
-                };
-                let ia = find(&a);
-                let ib = b.map(|b| find(&b));
-                // A link to a fixed DOF acts as grounded on the other end.
-                let mut v: Vec<(usize, f64)> = Vec::new();
-                if let Some(i) = ia {
-                    v.push((i, 1.0));
-                }
-                if let Some(Some(i)) = ib {
-                    v.push((i, -1.0));
-                }
-                if ia.is_none() && matches!(ib, None | Some(None)) {
-                    return Err(ModelError::NoSuchDof {
-                        what: what.to_string(),
-                        dof: a,
-                    });
-                }
-                for &(i, si) in &v {
-                    for &(j, sj) in &v {
-                        mat.push((i, j, si * sj * l.value));
-                    }
-                }
-                Ok(())
+        let add_link = |mat: &mut Entries, l: &LinkSpec, what: &str| -> Result<(), ModelError> {
+            let (a, b) = match (&l.dof, &l.between) {
+                (Some(d), _) => (*d, None),
+                (None, Some([a, b])) => (*a, Some(*b)),
+                (None, None) => unreachable!("validated in setup"),
             };
+            let ia = find(&a);
+            let ib = b.map(|b| find(&b));
+            // A link to a fixed DOF acts as grounded on the other end.
+            let mut v: Vec<(usize, f64)> = Vec::new();
+            if let Some(i) = ia {
+                v.push((i, 1.0));
+            }
+            if let Some(Some(i)) = ib {
+                v.push((i, -1.0));
+            }
+            if ia.is_none() && matches!(ib, None | Some(None)) {
+                return Err(ModelError::NoSuchDof {
+                    what: what.to_string(),
+                    dof: a,
+                });
+            }
+            for &(i, si) in &v {
+                for &(j, sj) in &v {
+                    mat.push((i, j, si * sj * l.value));
+                }
+            }
+            Ok(())
+        };
         for (i, s) in m.springs.iter().enumerate() {
             add_link(&mut K, s, &format!("model.springs[{i}]"))?;
         }
@@ -272,7 +271,14 @@ impl Model {
         if let Some(m) = finish_sparse(setup, &labels, &M, &K, &Cd, &find, dense_max_dofs)? {
             return Ok(m);
         }
-        finish(setup, labels, M.to_dense(), K.to_dense(), Cd.to_dense(), find)
+        finish(
+            setup,
+            labels,
+            M.to_dense(),
+            K.to_dense(),
+            Cd.to_dense(),
+            find,
+        )
     }
 
     /// The model of `[model.matrix_market]`: the files' matrices on the DOF map's labels,
@@ -303,7 +309,8 @@ impl Model {
                         tau,
                     });
                 }
-                if let Some(m) = finish_sparse(setup, &labels, &M, &K, &Cd, &find, dense_max_dofs)? {
+                if let Some(m) = finish_sparse(setup, &labels, &M, &K, &Cd, &find, dense_max_dofs)?
+                {
                     return Ok(m);
                 }
             }
@@ -425,7 +432,7 @@ fn finish(
 
 /// Whether a model is assembled in sparse form only: more than [`DENSE_MAX_DOFS`] DOFs and
 /// every DOF carries mass (nothing to condense).
- fn is_big_without_condensation(M: &CsrMatrix, dense_max_dofs: usize) -> bool {
+fn is_big_without_condensation(M: &CsrMatrix, dense_max_dofs: usize) -> bool {
     M.n > dense_max_dofs && (0..M.n).all(|i| !M.row_is_zero(i))
 }
 

@@ -471,10 +471,18 @@ mod tests {
         ch.solve_in_place(&mut x, &mut w);
         let mut r = vec![0.0; n];
         a.mul_add(0.0, &mut r, 1.0, &x);
-        let err = r.iter().zip(&b).map(|(p, q)| (p - q).abs()).fold(0.0, f64::max);
+        let err = r
+            .iter()
+            .zip(&b)
+            .map(|(p, q)| (p - q).abs())
+            .fold(0.0, f64::max);
         assert!(err < 1e-12, "{err}");
         // Against the dense form.
-        let xd = a.to_dense().lu().solve(&nalgebra::DVector::from_vec(b)).unwrap();
+        let xd = a
+            .to_dense()
+            .lu()
+            .solve(&nalgebra::DVector::from_vec(b))
+            .unwrap();
         for i in 0..n {
             assert!((x[i] - xd[i]).abs() < 1e-12);
         }

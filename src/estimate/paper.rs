@@ -121,13 +121,14 @@ enum Engine {
         state: ModalState,
         pred: ModalState,
     },
+    /// The state is advanced in place (prediction), then `Γ_f R` is added: no copies of
+    /// the n-vectors per sample.
     Sparse {
         step: SparseStep,
         gamma_u: DMatrix<f64>,
         gamma_v: DMatrix<f64>,
         gamma_a: DMatrix<f64>,
         state: State,
-        pred: State,
     },
 }
 
@@ -174,12 +175,9 @@ impl PaperEstimator {
                 ModalStep::new(model, inp.dt_s, inp.substeps, inp.newmark)
                     .map_err(crate::integrate::IntegrateError::from)?,
             ),
-            StepKind::Sparse => AutoChoice::Sparse(SparseStep::new(
-                model,
-                inp.dt_s,
-                inp.substeps,
-                inp.newmark,
-            )?),
+            StepKind::Sparse => {
+                AutoChoice::Sparse(SparseStep::new(model, inp.dt_s, inp.substeps, inp.newmark)?)
+            }
             StepKind::Auto => choose_auto(model, inp.dt_s, inp.substeps, inp.newmark)?,
         };
         if !model.has_dense() && !matches!(choice, AutoChoice::Sparse(_)) {
@@ -196,7 +194,6 @@ impl PaperEstimator {
                         gamma_v: gamma.rows(n, n).into_owned(),
                         gamma_a: gamma.rows(2 * n, n).into_owned(),
                         state: State::zeros(n),
-                        pred: State::zeros(n),
                     },
                     S,
                 )
@@ -415,22 +412,16 @@ impl ResidualEstimator for PaperEstimator {
                 gamma_v,
                 gamma_a,
                 state,
-                pred,
             } => {
-                // As the dense engine, with the sparse step and δ from the non-zeros of Lc.
-                pred.u.copy_from(&state.u);
-                pred.v.copy_from(&state.v);
-                pred.a.copy_from(&state.a);
-                step.advance(pred, &self.p_prev, excitation, &self.g);
+                // As the dense engine, with the sparse step, the prediction made in place and
+                // δ from the non-zeros of Lc.
+                step.advance(state, &self.p_prev, excitation, &self.g);
                 for (k, &(dof, q)) in self.stations.channels.iter().enumerate() {
-                    self.innov[k] = measured[k] - pred.channel(dof, q);
+                    self.innov[k] = measured[k] - state.channel(dof, q);
                 }
                 self.r.gemv(1.0, &self.gain, &self.innov, 0.0);
-                state.u.copy_from(&pred.u);
                 state.u.gemv(1.0, gamma_u, &self.r, 1.0);
-                state.v.copy_from(&pred.v);
                 state.v.gemv(1.0, gamma_v, &self.r, 1.0);
-                state.a.copy_from(&pred.a);
                 state.a.gemv(1.0, gamma_a, &self.r, 1.0);
                 if !state.is_finite() {
                     return Err(EstimateError::Diverged { sample });

@@ -73,7 +73,8 @@ impl SparseStep {
         );
         let meff =
             EnvelopeCholesky::factor(&meff_m).ok_or(IntegrateError::SingularEffectiveMass)?;
-        let mass = EnvelopeCholesky::factor(&parts.M).ok_or(IntegrateError::SingularEffectiveMass)?;
+        let mass =
+            EnvelopeCholesky::factor(&parts.M).ok_or(IntegrateError::SingularEffectiveMass)?;
         Ok(Self {
             n,
             dt_s,
@@ -323,10 +324,18 @@ mod tests {
                 modal.advance(&mut xm, &p0, &p1, &f);
             }
             for (a, b) in [(&xs.u, &xd.u), (&xs.v, &xd.v), (&xs.a, &xd.a)] {
-                assert!(rel(a, b) < 1e-10, "case {case}: sparse vs dense {}", rel(a, b));
+                assert!(
+                    rel(a, b) < 1e-10,
+                    "case {case}: sparse vs dense {}",
+                    rel(a, b)
+                );
             }
             let um = &modal.psi * &xm.q;
-            assert!(rel(&xs.u, &um) < 1e-9, "case {case}: sparse vs modal {}", rel(&xs.u, &um));
+            assert!(
+                rel(&xs.u, &um) < 1e-9,
+                "case {case}: sparse vs modal {}",
+                rel(&xs.u, &um)
+            );
             let (gd, gs) = (dense.force_response(), sparse.force_response());
             assert!((&gd - &gs).amax() <= 1e-10 * gd.amax(), "case {case}: Γ_f");
             // Initial acceleration.
@@ -337,6 +346,9 @@ mod tests {
             sparse.initial_acceleration(&mut as_, &[0.5, -0.2], &f0);
             assert!(rel(&as_.a, &ad.a) < 1e-10, "case {case}: a₀");
         }
-        assert!(used_rcm > 10, "the shuffled models should pick RCM: {used_rcm}");
+        assert!(
+            used_rcm > 10,
+            "the shuffled models should pick RCM: {used_rcm}"
+        );
     }
 }
