@@ -44,6 +44,11 @@ pub enum ModelError {
         "the mass matrix is not positive definite on the DOFs that carry mass (Cholesky failed)"
     )]
     MassNotDefinite,
+    #[error(
+        "{what} needs the dense M, C, K, but this {dofs}-DOF model is assembled in sparse form only (above {max} DOFs); only the paper estimator with the sparse step runs on it",
+        max = DENSE_MAX_DOFS
+    )]
+    SparseOnly { dofs: usize, what: &'static str },
 }
 
 /// A sensor channel mapped onto a retained DOF.
