@@ -1,6 +1,7 @@
-//! Per-sample cost of the paper estimator's step with the dense baseline and the modal
-//! step, on the synthetic chains of `jointid::model::synthetic` (24 and 240 DOFs, 64
-//! channels, 8 connection DOFs; the 2,400-DOF rows of BENCHMARKS.md come from
+//! Per-sample cost of the paper estimator's step with the dense baseline, the modal step
+//! and the sparse step, on the synthetic chains of `jointid::model::synthetic` (24 and 240
+//! DOFs, 64 channels, 8 connection DOFs, all three; 2,400 and 24,000 DOFs with the sparse
+//! step only; the 2,400-DOF dense/modal rows of BENCHMARKS.md come from
 //! `cargo run --release --example bench_model`, whose set-up takes minutes).
 //! `cargo bench --bench model_size`.
 use std::hint::black_box;
@@ -15,10 +16,15 @@ use jointid::setup::{EstimatorKind, Setup, StepKind};
 fn bench_model_size(c: &mut Criterion) {
     let mut group = c.benchmark_group("paper_step");
     group.throughput(Throughput::Elements(1));
-    for n in [24usize, 240] {
+    for n in [24usize, 240, 2400, 24000] {
         let setup = Setup::from_toml(&chain_setup_toml(n, 64, 8), "chain").expect("setup");
         let model = Model::assemble(&setup).expect("model");
-        for kind in [StepKind::Dense, StepKind::Modal] {
+        let kinds: &[StepKind] = if n <= 240 {
+            &[StepKind::Dense, StepKind::Modal, StepKind::Sparse]
+        } else {
+            &[StepKind::Sparse]
+        };
+        for &kind in kinds {
             let mut model = model.clone();
             model.step = kind;
             let mut opts = IdentifyOptions::from_setup(&setup);

@@ -273,6 +273,11 @@ pub fn check_observability(
             channels: stations.m(),
         });
     }
+    if !model.has_dense() {
+        // Sparse-only models (thousands of DOFs): the paper estimator's construction checks
+        // rank(S) itself from its sparse force response; the Kalman one refuses them.
+        return Ok(());
+    }
     let with_terms = model.with_connection_terms(setup, &setup.initial_params());
     let mut stepper =
         crate::integrate::Stepper::new(&with_terms, setup.dt_s, opts.substeps, setup.newmark)?;
@@ -317,6 +322,10 @@ pub fn build_estimator(
     };
     Ok(match opts.estimator {
         EstimatorKind::Paper => Box::new(PaperEstimator::new(inputs)?),
+        // The Kalman estimator is dense (its covariance is 3n × 3n anyway).
+        EstimatorKind::Kalman if !model.has_dense() => {
+            return Err(EstimateError::NeedsDense { dofs: model.n() });
+        }
         EstimatorKind::Kalman => {
             use crate::estimate::kalman::{
                 KalmanEstimator, KalmanOptions, MODEL_ERROR_RELATIVE, force_scale_of,

@@ -20,6 +20,7 @@ use crate::model::Model;
 use crate::setup::{Newmark, Quantity};
 
 pub mod fast;
+pub mod sparse;
 
 #[derive(Debug, thiserror::Error)]
 pub enum IntegrateError {

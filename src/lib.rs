@@ -16,7 +16,8 @@
 //!
 //! - [`setup`]: the TOML schema, validated into [`setup::Setup`].
 //! - [`model`]: FE assembly of M, C, K, DOF map, static condensation.
-//! - [`integrate`]: Newmark-β sample map (sub-steps), factorised once.
+//! - [`integrate`]: Newmark-β sample map (sub-steps), factorised once (dense, modal, sparse).
+//! - [`sparse`]: CSR matrices and the envelope Cholesky of the sparse step.
 //! - [`estimate`]: residual-force estimators behind [`estimate::ResidualEstimator`]
 //!   (the 1989 one-step reference and the default Kalman joint input–state estimator) and
 //!   the online least-squares refit.
@@ -38,4 +39,5 @@ pub mod model;
 pub mod pipeline;
 pub mod setup;
 pub mod simulate;
+pub mod sparse;
 pub mod track;

@@ -610,6 +610,13 @@ pub fn export(setup: &crate::setup::Setup, out_dir: &Path) -> Result<ExportSumma
     let mut bare = setup.clone();
     bare.model.rayleigh = None;
     let model = crate::model::Model::assemble(&bare)?;
+    if !model.has_dense() {
+        return Err(crate::model::ModelError::SparseOnly {
+            dofs: model.n(),
+            what: "export-mm",
+        }
+        .into());
+    }
     let origin = &setup.origin;
     let mut files = Vec::new();
     let mut write = |name: &str, text: String| -> Result<(), ExportError> {

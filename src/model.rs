@@ -21,6 +21,7 @@ pub mod synthetic;
 use nalgebra::{DMatrix, DVector};
 
 use crate::setup::{Dir, DofRef, LinkSpec, MassKind, Quantity, Setup};
+use crate::sparse::{CsrMatrix, EnvelopeCholesky};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {
@@ -48,6 +49,15 @@ pub enum ModelError {
         "the mass matrix is not positive definite on the DOFs that carry mass (Cholesky failed)"
     )]
     MassNotDefinite,
+    #[error(
+        "`reduce_modes`: the model has {dofs} DOFs and is assembled in sparse form only; the Craig–Bampton reduction is dense (fixed-interface eigenproblem) and is not available at this size"
+    )]
+    ReductionNeedsDense { dofs: usize },
+    #[error(
+        "{what} needs the dense M, C, K, but this {dofs}-DOF model is assembled in sparse form only (above {max} DOFs); only the paper estimator with the sparse step runs on it",
+        max = DENSE_MAX_DOFS
+    )]
+    SparseOnly { dofs: usize, what: &'static str },
 }
 
 /// A sensor channel mapped onto a retained DOF.
@@ -75,7 +85,29 @@ pub struct Model {
     pub rayleigh: (f64, f64),
     /// Implementation of the per-sample step the estimators use (`[integrator] step`).
     pub step: crate::setup::StepKind,
+    /// The sparse form, held only by models assembled *without* dense matrices (more than
+    /// [`DENSE_MAX_DOFS`] DOFs and nothing to condense); then `M`, `C`, `K` are 0 × 0 and
+    /// only the sparse step can run. Models with the dense form build the sparse one from
+    /// it on demand ([`Model::sparse_parts`]), so the two never disagree.
+    pub sparse: Option<SparseParts>,
 }
+
+/// Sparse `M`, `C`, `K` of a model (same units and DOF order as the dense ones).
+#[derive(Debug, Clone)]
+pub struct SparseParts {
+    pub M: CsrMatrix,
+    pub C: CsrMatrix,
+    pub K: CsrMatrix,
+}
+
+/// Above this many retained DOFs a model without massless DOFs is assembled in sparse form
+/// only: three dense 5,000² matrices are already 0.6 GB, and at 24,000 DOFs they would be
+/// 13.8 GB. Models that need static condensation stay dense (the condensed stiffness is
+/// dense over each beam anyway).
+pub const DENSE_MAX_DOFS: usize = 5_000;
+
+/// `(row, col, value)` entries of a matrix under assembly, duplicates to be summed in order.
+type Entries = Vec<(usize, usize, f64)>;
 
 /// An element's DOFs (w1, θ1, w2, θ2; `None` when fixed), length, EI, mass/length, mass kind.
 type ElementDofs = ([Option<usize>; 4], f64, f64, f64, MassKind);
@@ -89,9 +121,17 @@ enum FullDof {
 }
 
 impl Model {
+    /// Assemble the setup's model. Above [`DENSE_MAX_DOFS`] DOFs, when nothing needs
+    /// condensing, only the sparse form is built ([`Model::sparse`]).
     pub fn assemble(setup: &Setup) -> Result<Model, ModelError> {
+        Self::assemble_with(setup, DENSE_MAX_DOFS)
+    }
+
+    /// [`Model::assemble`] with the size above which the model is kept in sparse form only
+    /// (tests compare the two forms on small models).
+    pub fn assemble_with(setup: &Setup, dense_max_dofs: usize) -> Result<Model, ModelError> {
         if let Some(ext) = &setup.external {
-            return Self::assemble_external(setup, ext);
+            return Self::assemble_external(setup, ext, dense_max_dofs);
         }
         let m = &setup.model;
         // Node positions, including beam interior nodes.
@@ -160,9 +200,9 @@ impl Model {
             }
         }
         let nf = full.len();
-        let mut M = DMatrix::<f64>::zeros(nf, nf);
-        let mut K = DMatrix::<f64>::zeros(nf, nf);
-        let mut Cd = DMatrix::<f64>::zeros(nf, nf);
+        let mut M: Entries = Vec::new();
+        let mut K: Entries = Vec::new();
+        let mut Cd: Entries = Vec::new();
         for (dofs, l, ei, rho, kind) in &elements {
             let ke = beam_stiffness(*l, *ei);
             let me = beam_mass(*l, *rho, *kind);
@@ -170,17 +210,17 @@ impl Model {
                 let Some(gi) = dofs[i] else { continue };
                 for j in 0..4 {
                     let Some(gj) = dofs[j] else { continue };
-                    K[(gi, gj)] += ke[i][j];
-                    M[(gi, gj)] += me[i][j];
+                    K.push((gi, gj, ke[i][j]));
+                    M.push((gi, gj, me[i][j]));
                 }
             }
         }
+        let index: BTreeMap<FullDof, usize> =
+            full.iter().enumerate().map(|(i, f)| (*f, i)).collect();
         let find = |d: &DofRef| -> Option<usize> {
             match d.dir {
-                Dir::W => full.iter().position(|f| *f == FullDof::W(d.node)),
-                Dir::Rz => full
-                    .iter()
-                    .position(|f| *f == FullDof::Rz(d.node, usize::MAX)),
+                Dir::W => index.get(&FullDof::W(d.node)).copied(),
+                Dir::Rz => index.get(&FullDof::Rz(d.node, usize::MAX)).copied(),
                 // Rejected for beam models in setup validation.
                 Dir::Ux | Dir::Uy | Dir::Uz | Dir::Rx | Dir::Ry | Dir::Mode => None,
             }
@@ -190,7 +230,7 @@ impl Model {
                 node: ms.node,
                 dir: Dir::W,
             }) {
-                M[(i, i)] += ms.mass;
+                M.push((i, i, ms.mass));
             }
             if ms.inertia > 0.0
                 && let Some(i) = find(&DofRef {
@@ -198,39 +238,38 @@ impl Model {
                     dir: Dir::Rz,
                 })
             {
-                M[(i, i)] += ms.inertia;
+                M.push((i, i, ms.inertia));
             }
         }
-        let add_link =
-            |mat: &mut DMatrix<f64>, l: &LinkSpec, what: &str| -> Result<(), ModelError> {
-                let (a, b) = match (&l.dof, &l.between) {
-                    (Some(d), _) => (*d, None),
-                    (None, Some([a, b])) => (*a, Some(*b)),
-                    (None, None) => unreachable!("validated in setup"),
-                };
-                let ia = find(&a);
-                let ib = b.map(|b| find(&b));
-                // A link to a fixed DOF acts as grounded on the other end.
-                let mut v: Vec<(usize, f64)> = Vec::new();
-                if let Some(i) = ia {
-                    v.push((i, 1.0));
-                }
-                if let Some(Some(i)) = ib {
-                    v.push((i, -1.0));
-                }
-                if ia.is_none() && matches!(ib, None | Some(None)) {
-                    return Err(ModelError::NoSuchDof {
-                        what: what.to_string(),
-                        dof: a,
-                    });
-                }
-                for &(i, si) in &v {
-                    for &(j, sj) in &v {
-                        mat[(i, j)] += si * sj * l.value;
-                    }
-                }
-                Ok(())
+        let add_link = |mat: &mut Entries, l: &LinkSpec, what: &str| -> Result<(), ModelError> {
+            let (a, b) = match (&l.dof, &l.between) {
+                (Some(d), _) => (*d, None),
+                (None, Some([a, b])) => (*a, Some(*b)),
+                (None, None) => unreachable!("validated in setup"),
             };
+            let ia = find(&a);
+            let ib = b.map(|b| find(&b));
+            // A link to a fixed DOF acts as grounded on the other end.
+            let mut v: Vec<(usize, f64)> = Vec::new();
+            if let Some(i) = ia {
+                v.push((i, 1.0));
+            }
+            if let Some(Some(i)) = ib {
+                v.push((i, -1.0));
+            }
+            if ia.is_none() && matches!(ib, None | Some(None)) {
+                return Err(ModelError::NoSuchDof {
+                    what: what.to_string(),
+                    dof: a,
+                });
+            }
+            for &(i, si) in &v {
+                for &(j, sj) in &v {
+                    mat.push((i, j, si * sj * l.value));
+                }
+            }
+            Ok(())
+        };
         for (i, s) in m.springs.iter().enumerate() {
             add_link(&mut K, s, &format!("model.springs[{i}]"))?;
         }
@@ -238,7 +277,22 @@ impl Model {
             add_link(&mut Cd, s, &format!("model.dashpots[{i}]"))?;
         }
         let labels: Vec<DofRef> = full.iter().map(label).collect();
-        finish(setup, labels, M, K, Cd, find)
+        let (M, K, Cd) = (
+            CsrMatrix::from_triplets(nf, &M),
+            CsrMatrix::from_triplets(nf, &K),
+            CsrMatrix::from_triplets(nf, &Cd),
+        );
+        if let Some(m) = finish_sparse(setup, &labels, &M, &K, &Cd, &find, dense_max_dofs)? {
+            return Ok(m);
+        }
+        finish(
+            setup,
+            labels,
+            M.to_dense(),
+            K.to_dense(),
+            Cd.to_dense(),
+            find,
+        )
     }
 
     /// The model of `[model.matrix_market]`: the files' matrices on the DOF map's labels,
@@ -248,7 +302,33 @@ impl Model {
     fn assemble_external(
         setup: &Setup,
         ext: &crate::matrix_market::ExternalModel,
+        dense_max_dofs: usize,
     ) -> Result<Model, ModelError> {
+        let nf = ext.dofs.len();
+        let labels = ext.dofs.clone();
+        let find = |d: &DofRef| labels.iter().position(|l| l == d);
+        {
+            let M = CsrMatrix::from_triplets(nf, &ext.mass.entries);
+            let K = CsrMatrix::from_triplets(nf, &ext.stiffness.entries);
+            let Cd = ext.damping.as_ref().map_or_else(
+                || CsrMatrix::zeros(nf),
+                |c| CsrMatrix::from_triplets(nf, &c.entries),
+            );
+            if is_big_without_condensation(&M, dense_max_dofs) {
+                let tau = 1e-9 * (0..nf).map(|i| K.get(i, i).abs()).fold(0.0, f64::max);
+                let shifted = K.lin_comb(1.0, &CsrMatrix::identity(nf), tau);
+                if EnvelopeCholesky::factor(&shifted).is_none() {
+                    return Err(ModelError::NotSemiDefinite {
+                        path: ext.stiffness.path.clone(),
+                        tau,
+                    });
+                }
+                if let Some(m) = finish_sparse(setup, &labels, &M, &K, &Cd, &find, dense_max_dofs)?
+                {
+                    return Ok(m);
+                }
+            }
+        }
         let M = ext.mass.to_dense();
         let K = ext.stiffness.to_dense();
         let Cd = ext
@@ -263,8 +343,6 @@ impl Model {
                 tau,
             });
         }
-        let labels = ext.dofs.clone();
-        let find = |d: &DofRef| labels.iter().position(|l| l == d);
         finish(setup, ext.dofs.clone(), M, K, Cd, find)
     }
 }
@@ -361,13 +439,101 @@ fn finish(
             stations,
             rayleigh: (alpha, beta),
             step: setup.step,
+            sparse: None,
         })
     }
+}
+
+/// Whether a model is assembled in sparse form only: more than [`DENSE_MAX_DOFS`] DOFs and
+/// every DOF carries mass (nothing to condense).
+fn is_big_without_condensation(M: &CsrMatrix, dense_max_dofs: usize) -> bool {
+    M.n > dense_max_dofs && (0..M.n).all(|i| !M.row_is_zero(i))
+}
+
+/// The sparse-only model (see [`Model::sparse`]), or `None` when the model is small or
+/// needs condensation (then [`finish`] builds the dense one). Same checks, Rayleigh damping
+/// and placement as [`finish`], without any n × n dense intermediate.
+fn finish_sparse(
+    setup: &Setup,
+    full: &[DofRef],
+    M: &CsrMatrix,
+    K: &CsrMatrix,
+    Cd: &CsrMatrix,
+    find: &impl Fn(&DofRef) -> Option<usize>,
+    dense_max_dofs: usize,
+) -> Result<Option<Model>, ModelError> {
+    if !is_big_without_condensation(M, dense_max_dofs) {
+        return Ok(None);
+    }
+    let n = M.n;
+    if EnvelopeCholesky::factor(M).is_none() {
+        return Err(ModelError::MassNotDefinite);
+    }
+    let (alpha, beta) = setup
+        .model
+        .rayleigh
+        .as_ref()
+        .map_or((0.0, 0.0), |r| (r.alpha, r.beta));
+    let C = Cd.lin_comb(1.0, M, alpha).lin_comb(1.0, K, beta);
+    let locate = |what: String, d: &DofRef| -> Result<usize, ModelError> {
+        find(d).ok_or(ModelError::NoSuchDof { what, dof: *d })
+    };
+    let mut Lp = DMatrix::zeros(n, setup.excitation.len());
+    for (j, e) in setup.excitation.iter().enumerate() {
+        Lp[(locate(format!("excitation `{}`", e.name), &e.dof)?, j)] = 1.0;
+    }
+    let mut Lc = DMatrix::zeros(n, setup.connections.len());
+    for (j, c) in setup.connections.iter().enumerate() {
+        Lc[(locate(format!("connection `{}`", c.name), &c.a)?, j)] += 1.0;
+        if let Some(b) = &c.b {
+            Lc[(locate(format!("connection `{}`", c.name), b)?, j)] -= 1.0;
+        }
+    }
+    let mut stations = Vec::new();
+    for s in &setup.sensors {
+        stations.push(StationChannel {
+            dof: locate(format!("sensor `{}`", s.name), &s.dof)?,
+            quantity: s.quantity,
+        });
+    }
+    Ok(Some(Model {
+        dofs: full.to_vec(),
+        M: DMatrix::zeros(0, 0),
+        C: DMatrix::zeros(0, 0),
+        K: DMatrix::zeros(0, 0),
+        Lp,
+        Lc,
+        stations,
+        rayleigh: (alpha, beta),
+        step: setup.step,
+        sparse: Some(SparseParts {
+            M: M.clone(),
+            C,
+            K: K.clone(),
+        }),
+    }))
 }
 
 impl Model {
     pub fn n(&self) -> usize {
         self.dofs.len()
+    }
+
+    /// Whether the dense `M`, `C`, `K` exist (see [`Model::sparse`]).
+    pub fn has_dense(&self) -> bool {
+        self.sparse.is_none()
+    }
+
+    /// The sparse `M`, `C`, `K`: the stored form, or built from the dense one (O(n²)).
+    pub fn sparse_parts(&self) -> std::borrow::Cow<'_, SparseParts> {
+        match &self.sparse {
+            Some(p) => std::borrow::Cow::Borrowed(p),
+            None => std::borrow::Cow::Owned(SparseParts {
+                M: CsrMatrix::from_dense(&self.M),
+                C: CsrMatrix::from_dense(&self.C),
+                K: CsrMatrix::from_dense(&self.K),
+            }),
+        }
     }
 
     /// Undamped natural frequencies, Hz, ascending.
@@ -394,6 +560,37 @@ impl Model {
     /// into M (Step VI of the paper). Parameters are in `Setup::param_keys` order.
     pub fn with_connection_terms(&self, setup: &Setup, params: &[f64]) -> Model {
         let mut out = self.clone();
+        if let Some(sp) = &mut out.sparse {
+            // Sparse-only model: the same terms on the pattern of l lᵀ.
+            let mut k = 0;
+            for (c, conn) in setup.connections.iter().enumerate() {
+                let l: Vec<(usize, f64)> = self
+                    .Lc
+                    .column(c)
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, v)| **v != 0.0)
+                    .map(|(i, v)| (i, *v))
+                    .collect();
+                let llt: Entries = l
+                    .iter()
+                    .flat_map(|&(i, a)| l.iter().map(move |&(j, b)| (i, j, a * b)))
+                    .collect();
+                let llt = CsrMatrix::from_triplets(self.n(), &llt);
+                for b in &conn.basis {
+                    let p = params[k];
+                    k += 1;
+                    let target = match b {
+                        crate::setup::Basis::U => &mut sp.K,
+                        crate::setup::Basis::V => &mut sp.C,
+                        crate::setup::Basis::A => &mut sp.M,
+                        _ => continue,
+                    };
+                    *target = target.lin_comb(1.0, &llt, p);
+                }
+            }
+            return out;
+        }
         let mut k = 0;
         for (c, conn) in setup.connections.iter().enumerate() {
             let l: DVector<f64> = self.Lc.column(c).into_owned();

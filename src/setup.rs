@@ -308,14 +308,18 @@ pub struct IntegratorSpec {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
 pub enum StepKind {
-    /// `modal` when the model allows it (M-normalised modes, damping classical plus a
-    /// low-rank part), else `dense`.
+    /// `dense` below 48 DOFs; above, `sparse` or `modal`, whichever has the smaller
+    /// operation count per sample (see `estimate::paper::choose_auto`); `sparse` when the
+    /// model has no dense form.
     #[default]
     Auto,
     /// Dense `(M + γhC + βh²K)⁻¹` per sub-step: the straightforward baseline.
     Dense,
     /// Exact map in modal coordinates; an error when the damping does not allow it.
     Modal,
+    /// Sparse `M`, `C`, `K` and a sparse Cholesky factor of `M + γhC + βh²K`: cost per
+    /// sample proportional to the non-zeros (the only one for models without a dense form).
+    Sparse,
 }
 
 fn half() -> f64 {

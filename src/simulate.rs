@@ -185,6 +185,13 @@ impl TruthSystem {
         h: f64,
         params: &[f64],
     ) -> Result<Self, SimulateError> {
+        if !model.has_dense() {
+            return Err(crate::model::ModelError::SparseOnly {
+                dofs: model.n(),
+                what: "simulate",
+            }
+            .into());
+        }
         let Newmark = setup.newmark;
         let meff = &model.M + &model.C * (Newmark.gamma * h) + &model.K * (Newmark.beta * h * h);
         let meff_inv = meff.try_inverse().ok_or(SimulateError::Singular)?;

@@ -94,3 +94,66 @@ fn modal_and_dense_steps_identify_the_same_parameters_on_the_paper_model() {
         }
     }
 }
+
+#[test]
+fn sparse_and_dense_steps_identify_the_same_parameters_on_the_paper_model() {
+    // Same data and tolerances as the modal comparison above, one sub-step per sample: with
+    // sub-steps the simulated data are no longer the estimator's own discretisation (spring
+    // 299,923 instead of 300,000 at 4 sub-steps), the estimator is not exact, and its error
+    // recursion amplifies round-off differences to ~1e-8 relative (see the module docs).
+    // The sub-steps themselves are compared map against map, to 1e-10, in the unit test
+    // `integrate::sparse::tests`.
+    for (name, substeps) in [("two-beam-spring.toml", 1), ("two-beam-friction.toml", 1)] {
+        let d = identified(&setup_with(name, "dense", substeps), substeps, 72);
+        let s = identified(&setup_with(name, "sparse", substeps), substeps, 72);
+        eprintln!("{name}: dense {d:?}\n sparse {s:?}");
+        let truth = setup_with(name, "dense", 1).truth_params().unwrap();
+        for ((a, b), t) in d.iter().zip(&s).zip(&truth) {
+            assert!(a.is_finite() && b.is_finite(), "{name}: {d:?} vs {s:?}");
+            let tol = if *t == 0.0 {
+                1e-6
+            } else {
+                1e-9 * a.abs().max(b.abs())
+            };
+            assert!(
+                (a - b).abs() <= tol,
+                "{name} substeps {substeps}: dense {d:?} vs sparse {s:?}"
+            );
+            assert!(
+                (b - t).abs() <= 1e-6 * t.abs().max(1.0),
+                "{name}: {s:?} vs {truth:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_24000_dof_chain_is_assembled_sparse_and_stepped_without_dense_matrices() {
+    use jointid::estimate::StepOutput;
+    use jointid::identify::build_estimator;
+    use jointid::model::Model;
+    let text = jointid::model::synthetic::chain_setup_toml(24_000, 6, 1);
+    let setup = Setup::from_toml(&text, "chain").unwrap();
+    let model = Model::assemble(&setup).unwrap();
+    assert_eq!(model.n(), 24_000);
+    assert!(!model.has_dense() && model.M.is_empty());
+    let mut o = IdentifyOptions::from_setup(&setup);
+    o.estimator = EstimatorKind::Paper;
+    let sigma = vec![1e-6; 6];
+    let params = setup.initial_params();
+    let mut est = build_estimator(&setup, &model, &params, &o, &sigma, 0).unwrap();
+    // A constant force at node 1 from rest: the chain's first mass moves, the far end not yet.
+    let mut out = StepOutput::new(1);
+    est.start(0, &[0.0]);
+    for i in 1..=20 {
+        est.step(i, &[1.0], &[0.0; 6], &mut out).unwrap();
+        assert!(out.delta[0].is_finite() && out.force[0].is_finite());
+    }
+    // The Kalman estimator needs the dense form and says so.
+    o.estimator = EstimatorKind::Kalman;
+    let e = build_estimator(&setup, &model, &params, &o, &sigma, 0)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("sparse form only"), "{e}");
+}

@@ -43,6 +43,10 @@ pub enum EstimateError {
         "all {channels} measured channels are accelerations: the default (kalman) estimator does not determine the joint deformation from accelerations alone (measured on continuous data: the spring ~100 % off with a small stated error); add a displacement or velocity channel near the joint, or use `--estimator paper` on noise-free data of the model's own discretisation (README, \"Accelerometers only\")"
     )]
     AccelerationOnly { channels: usize },
+    #[error(
+        "the model has {dofs} DOFs and was assembled in sparse form only (no dense M, C, K): only the paper estimator with `[integrator] step = \"sparse\"` (or \"auto\") can run on it"
+    )]
+    NeedsDense { dofs: usize },
     #[error(transparent)]
     Integrate(#[from] crate::integrate::IntegrateError),
 }

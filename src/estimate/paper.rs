@@ -19,10 +19,11 @@
 //! errors (noise, discretisation mismatch) accumulate step after step.
 //!
 //! The model is advanced either by the dense [`Stepper`] (the baseline) or, per
-//! `[integrator] step`, by the exact modal map [`ModalStep`]; with the modal map the state
-//! is kept in modal coordinates and per sample only the station outputs (their rows of `Ψ`)
-//! and the connection deformations (`ΨᵀLc`) are formed, never the physical state. `auto`
-//! uses the modal map from [`AUTO_MODAL_MIN_DOFS`] DOFs up when the damping allows it.
+//! `[integrator] step`, by the exact modal map [`ModalStep`] or the sparse step
+//! [`SparseStep`]; with the modal map the state is kept in modal coordinates and per sample
+//! only the station outputs (their rows of `Ψ`) and the connection deformations (`ΨᵀLc`) are
+//! formed, never the physical state; the sparse step keeps the physical state and picks the
+//! stations from it. `auto`: see [`choose_auto`].
 
 #![allow(non_snake_case)]
 
@@ -33,6 +34,7 @@ use super::{
     rank_and_condition, spectral_radius,
 };
 use crate::integrate::fast::{ModalOutputs, ModalState, ModalStep};
+use crate::integrate::sparse::SparseStep;
 use crate::integrate::{State, Stepper};
 use crate::model::Model;
 use crate::setup::{Newmark, StepKind, Weighting};
@@ -41,6 +43,64 @@ use crate::setup::{Newmark, StepKind, Weighting};
 /// is as fast (measured with `examples/bench_model.rs`, see `BENCHMARKS.md`) and keeps the
 /// shipped results bit-identical to the reference implementation.
 pub const AUTO_MODAL_MIN_DOFS: usize = 48;
+
+/// Multiply-adds per sample of the sparse step: per sub-step the two mat-vecs, two
+/// triangular solves and ~8n of predictor/corrector work; per sample `3nq` for `Γ_f R`.
+pub fn sparse_cost(step: &SparseStep, q: usize) -> usize {
+    let n = step.n;
+    step.substeps * (step.C.nnz() + step.K.nnz() + 2 * step.meff.nnz() + 8 * n) + 3 * n * q
+}
+
+/// Multiply-adds per sample of the composed modal map, a lower bound (the low-rank damping
+/// path costs more): per mode the 3 × 3 map and loads, the stations' rows of Ψ, `ΨᵀLc`
+/// three times and `Γ_f R`.
+pub fn modal_cost_lower_bound(n: usize, channels: usize, q: usize) -> usize {
+    n * (15 + channels + 6 * q)
+}
+
+/// Measured weight of one sparse multiply-add against one of the modal map's dense ones
+/// (indirect addressing, and the triangular solves' row-to-row dependency): on the 240-DOF
+/// chains of `examples/bench_model.rs` a sparse operation took 1.7 ns, a modal one
+/// 0.5–0.9 ns (BENCHMARKS.md).
+pub const SPARSE_OP_WEIGHT: usize = 2;
+
+/// `step = "auto"`: the dense step below [`AUTO_MODAL_MIN_DOFS`] (as fast there, and the
+/// shipped results stay bit-identical to the reference); the sparse step when the model has
+/// no dense form; otherwise the sparse step when its weighted operation count per sample
+/// (`SPARSE_OP_WEIGHT ×` [`sparse_cost`]) is at most the modal map's lower bound
+/// ([`modal_cost_lower_bound`]) — banded models with many channels, where it also saves
+/// the O(n³) eigen-decomposition — else the modal map when the damping allows it, else the
+/// sparse step. Checked against the measured steps/s of `examples/bench_model.rs`
+/// (BENCHMARKS.md).
+pub enum AutoChoice {
+    Dense,
+    Modal(ModalStep),
+    Sparse(SparseStep),
+}
+
+pub fn choose_auto(
+    model: &Model,
+    dt_s: f64,
+    substeps: usize,
+    newmark: Newmark,
+) -> Result<AutoChoice, EstimateError> {
+    let n = model.n();
+    if model.has_dense() && n < AUTO_MODAL_MIN_DOFS {
+        return Ok(AutoChoice::Dense);
+    }
+    let sparse = SparseStep::new(model, dt_s, substeps, newmark)?;
+    let q = model.Lc.ncols();
+    if !model.has_dense()
+        || SPARSE_OP_WEIGHT * sparse_cost(&sparse, q)
+            <= modal_cost_lower_bound(n, model.stations.len(), q)
+    {
+        return Ok(AutoChoice::Sparse(sparse));
+    }
+    Ok(match ModalStep::new(model, dt_s, substeps, newmark) {
+        Ok(m) => AutoChoice::Modal(m),
+        Err(_) => AutoChoice::Sparse(sparse),
+    })
+}
 
 /// How the model is advanced: the dense baseline or the exact modal map.
 #[allow(clippy::large_enum_variant)] // one per estimator, never moved per sample
@@ -60,6 +120,15 @@ enum Engine {
         gamma: DMatrix<f64>,
         state: ModalState,
         pred: ModalState,
+    },
+    /// The state is advanced in place (prediction), then `Γ_f R` is added: no copies of
+    /// the n-vectors per sample.
+    Sparse {
+        step: SparseStep,
+        gamma_u: DMatrix<f64>,
+        gamma_v: DMatrix<f64>,
+        gamma_a: DMatrix<f64>,
+        state: State,
     },
 }
 
@@ -100,19 +169,36 @@ impl PaperEstimator {
         let q = inp.law.q();
         let stations = Stations::from_model(model);
         let m = stations.m();
-        let modal = match model.step {
-            StepKind::Dense => None,
-            StepKind::Modal => Some(
+        let choice = match model.step {
+            StepKind::Dense => AutoChoice::Dense,
+            StepKind::Modal => AutoChoice::Modal(
                 ModalStep::new(model, inp.dt_s, inp.substeps, inp.newmark)
                     .map_err(crate::integrate::IntegrateError::from)?,
             ),
-            StepKind::Auto if n >= AUTO_MODAL_MIN_DOFS => {
-                ModalStep::new(model, inp.dt_s, inp.substeps, inp.newmark).ok()
+            StepKind::Sparse => {
+                AutoChoice::Sparse(SparseStep::new(model, inp.dt_s, inp.substeps, inp.newmark)?)
             }
-            StepKind::Auto => None,
+            StepKind::Auto => choose_auto(model, inp.dt_s, inp.substeps, inp.newmark)?,
         };
-        let (mut engine, S) = match modal {
-            Some(mut step) => {
+        if !model.has_dense() && !matches!(choice, AutoChoice::Sparse(_)) {
+            return Err(EstimateError::NeedsDense { dofs: n });
+        }
+        let (mut engine, S) = match choice {
+            AutoChoice::Sparse(mut step) => {
+                let gamma = step.force_response();
+                let S = stations.pick_rows(&gamma, n);
+                (
+                    Engine::Sparse {
+                        step,
+                        gamma_u: gamma.rows(0, n).into_owned(),
+                        gamma_v: gamma.rows(n, n).into_owned(),
+                        gamma_a: gamma.rows(2 * n, n).into_owned(),
+                        state: State::zeros(n),
+                    },
+                    S,
+                )
+            }
+            AutoChoice::Modal(mut step) => {
                 let gamma = step.force_response();
                 let outputs = ModalOutputs::new(&step, &stations.channels);
                 let S = outputs.sensitivity(&gamma);
@@ -128,7 +214,7 @@ impl PaperEstimator {
                     S,
                 )
             }
-            None => {
+            AutoChoice::Dense => {
                 let mut stepper = Stepper::new(model, inp.dt_s, inp.substeps, inp.newmark)?;
                 let gamma = stepper.force_response();
                 let S = stations.pick_rows(&gamma, n);
@@ -180,11 +266,11 @@ impl PaperEstimator {
             sensitivity_gain: s_gain,
             ..Default::default()
         };
-        if inp.spectral_diagnostics {
+        if inp.spectral_diagnostics && model.has_dense() {
             // The 3n × 3n transition is formed densely whatever the engine (small models).
             let (phi, gamma) = match &mut engine {
                 Engine::Dense { stepper, .. } => (stepper.transition(), stepper.force_response()),
-                Engine::Modal { .. } => {
+                Engine::Modal { .. } | Engine::Sparse { .. } => {
                     let mut s = Stepper::new(model, inp.dt_s, inp.substeps, inp.newmark)?;
                     (s.transition(), s.force_response())
                 }
@@ -244,6 +330,10 @@ impl ResidualEstimator for PaperEstimator {
             }
             Engine::Modal { step, state, .. } => {
                 *state = ModalState::zeros(step.modes());
+                step.initial_acceleration(state, excitation, &z);
+            }
+            Engine::Sparse { step, state, .. } => {
+                *state = State::zeros(step.n);
                 step.initial_acceleration(state, excitation, &z);
             }
         }
@@ -315,6 +405,30 @@ impl ResidualEstimator for PaperEstimator {
                 out.delta.gemv_tr(1.0, &step.bc, &state.q, 0.0);
                 out.delta_v.gemv_tr(1.0, &step.bc, &state.qd, 0.0);
                 out.delta_a.gemv_tr(1.0, &step.bc, &state.qdd, 0.0);
+            }
+            Engine::Sparse {
+                step,
+                gamma_u,
+                gamma_v,
+                gamma_a,
+                state,
+            } => {
+                // As the dense engine, with the sparse step, the prediction made in place and
+                // δ from the non-zeros of Lc.
+                step.advance(state, &self.p_prev, excitation, &self.g);
+                for (k, &(dof, q)) in self.stations.channels.iter().enumerate() {
+                    self.innov[k] = measured[k] - state.channel(dof, q);
+                }
+                self.r.gemv(1.0, &self.gain, &self.innov, 0.0);
+                state.u.gemv(1.0, gamma_u, &self.r, 1.0);
+                state.v.gemv(1.0, gamma_v, &self.r, 1.0);
+                state.a.gemv(1.0, gamma_a, &self.r, 1.0);
+                if !state.is_finite() {
+                    return Err(EstimateError::Diverged { sample });
+                }
+                step.deformation(&state.u, &mut out.delta);
+                step.deformation(&state.v, &mut out.delta_v);
+                step.deformation(&state.a, &mut out.delta_a);
             }
         }
         self.law

@@ -31,15 +31,17 @@
 //!
 //! # Why this and not a sparse factorisation
 //!
-//! A sparse/banded LDLᵀ of `M + γhC + βh²K` makes a sub-step `O(nnz)` (not implemented, so
-//! not measured), but the estimators would still take `s` sub-steps per sample and form the
-//! full state. In modal form the sub-steps collapse into one 3 × 3 map per mode and the
+//! A sparse Cholesky of `M + γhC + βh²K` ([`super::sparse`]) makes a sub-step `O(nnz)`,
+//! but the estimators still take `s` sub-steps per sample and form the full state. In
+//! modal form the sub-steps collapse into one 3 × 3 map per mode and the
 //! stations need only their own rows of `Ψ` (`O(channels · modes)`), which is what the
 //! paper estimator consumes. Measured (`examples/bench_model.rs`, `BENCHMARKS.md`): 5–16×
 //! the dense step at 240 DOFs, 90–2,400× at 2,400 DOFs; at 24 DOFs within a factor 2
 //! either way. The price is the dense eigen-decomposition at set-up, `O(n³)`: 23–32 s at
 //! 2,400 DOFs on one core, infeasible at 24,000 DOFs with dense storage (that needs a
-//! sparse Lanczos basis, not implemented).
+//! sparse Lanczos basis, not implemented); there the sparse step is the one that runs.
+//! Which is faster per sample depends on channels and connections (`BENCHMARKS.md`;
+//! `step = "auto"` picks by operation count, `estimate::paper::choose_auto`).
 #![allow(non_snake_case)]
 
 use nalgebra::{DMatrix, DVector};
@@ -592,6 +594,7 @@ mod tests {
             stations: Vec::new(),
             rayleigh: (alpha, beta),
             step: StepKind::Auto,
+            sparse: None,
         }
     }
 

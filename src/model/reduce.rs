@@ -58,6 +58,9 @@ impl Model {
     /// `modes` fixed-interface modes (fewer when the interior has fewer DOFs). Boundary DOFs
     /// keep their labels and come first; mode `k` is labelled `node = k, dir = mode`.
     pub fn craig_bampton(&self, modes: usize) -> Result<Model, ModelError> {
+        if !self.has_dense() {
+            return Err(ModelError::ReductionNeedsDense { dofs: self.n() });
+        }
         let n = self.n();
         let b = boundary_dofs(self);
         let interior: Vec<usize> = (0..n).filter(|i| !b.contains(i)).collect();
@@ -129,6 +132,7 @@ impl Model {
             stations,
             rayleigh: self.rayleigh,
             step: self.step,
+            sparse: None,
         })
     }
 }

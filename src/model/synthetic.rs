@@ -73,4 +73,29 @@ mod tests {
         // Top of an infinite chain: (1/π)·sqrt(k/m) = 3.18 kHz.
         assert!(f[23] < 3.2e3 && f[0] > 1.0, "{} .. {}", f[0], f[23]);
     }
+
+    #[test]
+    fn sparse_only_assembly_equals_the_dense_one() {
+        let s = Setup::from_toml(&chain_setup_toml(60, 6, 2), "chain").unwrap();
+        let d = Model::assemble(&s).unwrap();
+        let sp = Model::assemble_with(&s, 10).unwrap();
+        assert!(d.has_dense() && !sp.has_dense() && sp.M.is_empty());
+        let (a, b) = (d.sparse_parts(), sp.sparse_parts());
+        for (x, y) in [(&a.M, &b.M), (&a.C, &b.C), (&a.K, &b.K)] {
+            assert!((x.to_dense() - y.to_dense()).amax() <= 1e-15 * x.amax());
+        }
+        assert_eq!(d.Lp, sp.Lp);
+        assert_eq!(d.Lc, sp.Lc);
+        assert_eq!(d.dofs, sp.dofs);
+        let dofs = |m: &Model| m.stations.iter().map(|c| c.dof).collect::<Vec<_>>();
+        assert_eq!(dofs(&d), dofs(&sp));
+        // Connection terms land in the same place in both forms.
+        let p = [1.0, 3.0e5, 2.0, 4.0e5];
+        let (dw, sw) = (
+            d.with_connection_terms(&s, &p),
+            sp.with_connection_terms(&s, &p),
+        );
+        let (a, b) = (dw.sparse_parts(), sw.sparse_parts());
+        assert!((a.K.to_dense() - b.K.to_dense()).amax() <= 1e-15 * a.K.amax());
+    }
 }
