@@ -386,8 +386,9 @@ pub struct ScanReport {
     /// Every local minimum the descents reached, lowest cost first.
     pub minima: Vec<Minimum>,
     /// Set when another minimum, more than 3 standard errors away, is not distinguishable
-    /// from the best by its cost (likelihood-ratio Δχ² < 3.84 × the normalised cost): the
-    /// standard errors are widened to cover it.
+    /// from the best by its cost (likelihood-ratio Δχ² < 3.84 × the normalised cost, or less
+    /// than the cost the best leaves unexplained above the noise floor): the standard
+    /// errors are widened to cover it.
     pub ambiguous: bool,
 }
 
@@ -534,7 +535,11 @@ pub fn refine_global(
     minima.sort_by(|a, b| a.cost.total_cmp(&b.cost));
     // Another minimum more than 3 standard errors away whose cost is within the
     // likelihood-ratio threshold cannot be told apart: widen the errors to cover it.
-    let threshold = 3.84 * best.report.cost_end.max(1.0);
+    // The threshold also covers the cost the model leaves unexplained above the noise floor
+    // (normalised cost 1): a model error that large can reorder minima whose costs differ by
+    // less.
+    let threshold =
+        (3.84 * best.report.cost_end.max(1.0)).max((best.report.cost_end - 1.0) * nobs);
     let mut ambiguous = false;
     for other in &minima {
         let far = other
