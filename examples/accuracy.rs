@@ -136,16 +136,31 @@ fn run(c: &Config) -> Result<(Setup, Vec<f64>, Stats)> {
             let errs: Vec<String> = params
                 .iter()
                 .zip(&truth)
-                .map(|(q, t)| format!("{:+.3} % (se {:.3} %)", 100.0 * (q.value - t) / t, 100.0 * q.std_error / t))
+                .map(|(q, t)| {
+                    format!(
+                        "{:+.3} % (se {:.3} %)",
+                        100.0 * (q.value - t) / t,
+                        100.0 * q.std_error / t
+                    )
+                })
                 .collect();
             eprintln!("seed {seed}: {}", errs.join(", "));
             if let Some(oe) = &r.output_error {
-                eprintln!("  output error: cost {:.4} → {:.4}, {}", oe.cost_start, oe.cost_end, oe.note);
+                eprintln!(
+                    "  output error: cost {:.4} → {:.4}, {}",
+                    oe.cost_start, oe.cost_end, oe.note
+                );
                 if let Some(scan) = &oe.scan {
                     for m in &scan.minima {
-                        eprintln!("  minimum from {}: {:?} cost {:.5}", m.from, m.values, m.cost);
+                        eprintln!(
+                            "  minimum from {}: {:?} cost {:.5}",
+                            m.from, m.values, m.cost
+                        );
                     }
-                    eprintln!("  scan: {} points on {} samples over {:?}, basin half-width {:.4e}", scan.points, scan.samples, scan.range, scan.basin_half_width);
+                    eprintln!(
+                        "  scan: {} points on {} samples over {:?}, basin half-width {:.4e}",
+                        scan.points, scan.samples, scan.range, scan.basin_half_width
+                    );
                 }
             }
             for n in &r.notes {

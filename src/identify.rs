@@ -876,7 +876,19 @@ fn finish_with_output_error(
             opts.substeps,
             opts.output_error_iterations,
         )
-        .map(|r| raise_substeps(setup, model, data, opts, sigma, &values, &scales, r, &mut result.notes));
+        .map(|r| {
+            raise_substeps(
+                setup,
+                model,
+                data,
+                opts,
+                sigma,
+                &values,
+                &scales,
+                r,
+                &mut result.notes,
+            )
+        });
         match refined {
             Ok(mut r) => {
                 // A refinement that converged (its last step below 0.05 of the bound) is taken;
@@ -989,15 +1001,9 @@ fn raise_substeps(
         };
         let mut best_drop: Option<(f64, f64, f64)> = None;
         for (p, c) in &points {
-            if let Ok((_, c2)) = residuals(
-                setup,
-                model,
-                p,
-                &data.excitation,
-                &data.response,
-                sigma,
-                s2,
-            ) {
+            if let Ok((_, c2)) =
+                residuals(setup, model, p, &data.excitation, &data.response, sigma, s2)
+            {
                 let d = c - c2 / nobs;
                 if best_drop.is_none_or(|b| d > b.0) {
                     best_drop = Some((d, *c, c2 / nobs));

@@ -90,7 +90,11 @@ fn stiffness_scan_finds_the_global_minimum_from_a_start_20_percent_low() {
         "the plain descent was expected to stop in a wrong minimum"
     );
     // The scan's global minimum: within 0.5 % and within 3 stated standard errors.
-    assert!(err(global.values[0]).abs() < 0.005, "{}", err(global.values[0]));
+    assert!(
+        err(global.values[0]).abs() < 0.005,
+        "{}",
+        err(global.values[0])
+    );
     assert!(
         (global.values[0] - K).abs() < 3.0 * global.std_errors[0],
         "truth outside 3 se: {} ± {}",

@@ -538,8 +538,7 @@ pub fn refine_global(
     // The threshold also covers the cost the model leaves unexplained above the noise floor
     // (normalised cost 1): a model error that large can reorder minima whose costs differ by
     // less.
-    let threshold =
-        (3.84 * best.report.cost_end.max(1.0)).max((best.report.cost_end - 1.0) * nobs);
+    let threshold = (3.84 * best.report.cost_end.max(1.0)).max((best.report.cost_end - 1.0) * nobs);
     let mut ambiguous = false;
     for other in &minima {
         let far = other
