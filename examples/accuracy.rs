@@ -7,7 +7,7 @@
 //! cargo run --release --example accuracy -- [--setup FILE] [--basis u,sign(v)] [--truth 3e5,3000]
 //!     [--noise 0.1] [--samples 2000] [--seeds 20] [--data-substeps 64] [--model-substeps 16]
 //!     [--estimator kalman|paper] [--no-output-error] [--passes 10] [--grid]
-//!     [--grid-samples 2000,20000]
+//!     [--grid-samples 2000,20000] [--first-seed 1] [--verbose]
 //! ```
 //!
 //! `--grid` runs the README grid (noise 10/50/100 %, 2,000 and 20,000 samples, both
@@ -32,6 +32,8 @@ struct Config {
     output_error: bool,
     passes: usize,
     first_seed: u64,
+    /// Print every seed's result and the output-error report (`--verbose`).
+    verbose: bool,
 }
 
 /// The setup text with the connection's basis / truth / initial replaced (the two-beam
@@ -130,6 +132,41 @@ fn run(c: &Config) -> Result<(Setup, Vec<f64>, Stats)> {
             st.failures += 1;
             continue;
         };
+        if c.verbose {
+            let errs: Vec<String> = params
+                .iter()
+                .zip(&truth)
+                .map(|(q, t)| {
+                    format!(
+                        "{:+.3} % (se {:.3} %)",
+                        100.0 * (q.value - t) / t,
+                        100.0 * q.std_error / t
+                    )
+                })
+                .collect();
+            eprintln!("seed {seed}: {}", errs.join(", "));
+            if let Some(oe) = &r.output_error {
+                eprintln!(
+                    "  output error: cost {:.4} → {:.4}, {}",
+                    oe.cost_start, oe.cost_end, oe.note
+                );
+                if let Some(scan) = &oe.scan {
+                    for m in &scan.minima {
+                        eprintln!(
+                            "  minimum from {}: {:?} cost {:.5}",
+                            m.from, m.values, m.cost
+                        );
+                    }
+                    eprintln!(
+                        "  scan: {} points on {} samples over {:?}, basin half-width {:.4e}",
+                        scan.points, scan.samples, scan.range, scan.basin_half_width
+                    );
+                }
+            }
+            for n in &r.notes {
+                eprintln!("  note: {n}");
+            }
+        }
         for (j, q) in params.iter().enumerate() {
             st.errors[j].push(q.value - truth[j]);
             st.se[j].push(q.std_error);
@@ -222,6 +259,7 @@ fn main() -> Result<()> {
         output_error: true,
         passes: 10,
         first_seed: 1,
+        verbose: false,
     };
     let mut grid = false;
     let mut grid_samples = vec![2000, 20000];
@@ -255,6 +293,10 @@ fn main() -> Result<()> {
             }
             "--no-output-error" => {
                 c.output_error = false;
+                i -= 1;
+            }
+            "--verbose" => {
+                c.verbose = true;
                 i -= 1;
             }
             "--grid" => {

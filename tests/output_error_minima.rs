@@ -1,0 +1,107 @@
+//! The output-error cost of an undamped structure oscillates in stiffness: a descent started
+//! outside the global minimum's basin ends in a neighbouring minimum with a small stated
+//! error. `refine_global` scans the stiffness for other minima and keeps the lowest cost.
+//! Data from the model's own discretisation (2 sub-steps), 100 % noise, 1,000 samples, a
+//! start 20 % low (the residual-force stage was measured 7–14 % low at 100 % noise).
+
+use jointid::estimate::output_error::{refine, refine_global};
+use jointid::identify::{TestData, channel_noise};
+use jointid::model::Model;
+use jointid::setup::Setup;
+use jointid::simulate::{Noise, Scenario, SimulateOptions, simulate};
+
+const K: f64 = 3.0e5;
+
+fn spring_setup() -> Setup {
+    let text = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/recordings/two-beam-spring.toml"
+    ))
+    .unwrap();
+    let text: String = text
+        .lines()
+        .map(|l| {
+            let t = l.trim_start();
+            if t.starts_with("basis") {
+                "basis = [\"u\"]".to_string()
+            } else if t.starts_with("truth") {
+                format!("truth = [{K:?}]")
+            } else if t.starts_with("initial") {
+                "initial = [0.0]".into()
+            } else if t.starts_with("substeps") {
+                "substeps = 2".into()
+            } else {
+                l.to_string()
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("\n");
+    Setup::from_toml(&text, "two-beam-spring").unwrap()
+}
+
+#[test]
+fn stiffness_scan_finds_the_global_minimum_from_a_start_20_percent_low() {
+    let setup = spring_setup();
+    let n = 1000;
+    let sim = simulate(
+        &setup,
+        &SimulateOptions {
+            scenario: Scenario::Random { rms: 2e4 },
+            steps: n,
+            dt_s: setup.dt_s,
+            substeps: 2,
+            noise: Noise::Additive(1.0),
+            seed: 1,
+        },
+    )
+    .unwrap();
+    let data = TestData {
+        samples: (0..n as u64).collect(),
+        t_ns: vec![0; n],
+        excitation: sim.excitation,
+        response: sim.response,
+    };
+    let model = Model::assemble(&setup).unwrap();
+    let (sigma, _) = channel_noise(&setup, &data);
+    let start = [0.8 * K];
+    let scales = [0.01 * K];
+    let args = (&data.excitation, &data.response, &sigma[..]);
+    let plain = refine(
+        &setup, &model, &start, &scales, args.0, args.1, args.2, 2, 20,
+    )
+    .unwrap();
+    let global = refine_global(
+        &setup, &model, &start, &scales, args.0, args.1, args.2, 2, 20,
+    )
+    .unwrap();
+    let err = |v: f64| (v - K) / K;
+    eprintln!(
+        "plain {:+.3} % (cost {:.4}, se {:.3} %), global {:+.3} % (cost {:.4}, se {:.3} %)",
+        100.0 * err(plain.values[0]),
+        plain.report.cost_end,
+        100.0 * plain.std_errors[0] / K,
+        100.0 * err(global.values[0]),
+        global.report.cost_end,
+        100.0 * global.std_errors[0] / K
+    );
+    // The plain descent ends in a wrong minimum, many stated standard errors off.
+    assert!(
+        (plain.values[0] - K).abs() > 5.0 * plain.std_errors[0],
+        "the plain descent was expected to stop in a wrong minimum"
+    );
+    // The scan's global minimum: within 0.5 % and within 3 stated standard errors.
+    assert!(
+        err(global.values[0]).abs() < 0.005,
+        "{}",
+        err(global.values[0])
+    );
+    assert!(
+        (global.values[0] - K).abs() < 3.0 * global.std_errors[0],
+        "truth outside 3 se: {} ± {}",
+        global.values[0],
+        global.std_errors[0]
+    );
+    assert!(global.report.cost_end < plain.report.cost_end);
+    let scan = global.report.scan.as_ref().expect("scan report");
+    assert!(scan.minima.len() >= 2);
+}
