@@ -2,40 +2,15 @@
 //! estimators make of them, and mixed layouts. Figures and the open problem of
 //! accelerometer-only layouts on continuous data: README "Accelerometers only".
 
+mod common;
+
 use jointid::identify::{Identification, IdentifyOptions, TestData, identify};
 use jointid::setup::{EstimatorKind, Setup};
 use jointid::simulate::{Noise, Scenario, SimulateOptions, Simulated, simulate};
 
 /// A shipped two-beam setup with the connection law and model sub-steps replaced.
 fn setup(file: &str, basis: &[&str], truth: &[f64], model_substeps: usize) -> Setup {
-    let path = format!("{}/recordings/{file}", env!("CARGO_MANIFEST_DIR"));
-    let text = std::fs::read_to_string(&path).unwrap();
-    let list = |v: Vec<String>| v.join(", ");
-    let text: String = text
-        .lines()
-        .map(|l| {
-            let t = l.trim_start();
-            if t.starts_with("basis") {
-                format!(
-                    "basis = [{}]",
-                    list(basis.iter().map(|b| format!("\"{b}\"")).collect())
-                )
-            } else if t.starts_with("truth") {
-                format!(
-                    "truth = [{}]",
-                    list(truth.iter().map(|x| format!("{x:?}")).collect())
-                )
-            } else if t.starts_with("initial") {
-                format!("initial = [{}]", list(vec!["0.0".into(); basis.len()]))
-            } else if t.starts_with("substeps") {
-                format!("substeps = {model_substeps}")
-            } else {
-                l.to_string()
-            }
-        })
-        .collect::<Vec<_>>()
-        .join("\n");
-    Setup::from_toml(&text, &path).unwrap()
+    common::setup_variant(file, basis, truth, model_substeps)
 }
 
 fn sim(s: &Setup, steps: usize, data_substeps: usize, noise: Noise, seed: u64) -> Simulated {

@@ -2,43 +2,15 @@
 //! problem, with tolerances. The heavy grids (20,000 samples, many seeds) are in
 //! `examples/accuracy.rs`, whose output is the README table; these are its light subset.
 
+mod common;
+
 use jointid::identify::{Identification, IdentifyOptions, TestData, identify};
 use jointid::setup::Setup;
 use jointid::simulate::{Noise, Scenario, SimulateOptions, simulate};
 
 /// The two-beam friction setup with the connection law and model sub-steps replaced.
 fn two_beam(basis: &[&str], truth: &[f64], model_substeps: usize) -> Setup {
-    let text = std::fs::read_to_string(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/recordings/two-beam-friction.toml"
-    ))
-    .unwrap();
-    let list = |v: Vec<String>| v.join(", ");
-    let text: String = text
-        .lines()
-        .map(|l| {
-            let t = l.trim_start();
-            if t.starts_with("basis") {
-                format!(
-                    "basis = [{}]",
-                    list(basis.iter().map(|b| format!("\"{b}\"")).collect())
-                )
-            } else if t.starts_with("truth") {
-                format!(
-                    "truth = [{}]",
-                    list(truth.iter().map(|x| format!("{x:?}")).collect())
-                )
-            } else if t.starts_with("initial") {
-                format!("initial = [{}]", list(vec!["0.0".into(); basis.len()]))
-            } else if t.starts_with("substeps") {
-                format!("substeps = {model_substeps}")
-            } else {
-                l.to_string()
-            }
-        })
-        .collect::<Vec<_>>()
-        .join("\n");
-    Setup::from_toml(&text, "two-beam").unwrap()
+    common::setup_variant("two-beam-friction.toml", basis, truth, model_substeps)
 }
 
 fn run(

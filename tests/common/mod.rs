@@ -37,3 +37,42 @@ pub fn replay_json(args: &[&str]) -> serde_json::Value {
     a.push("--json");
     serde_json::from_str(&ok(&a)).expect("replay --json prints JSON")
 }
+
+/// A shipped setup (`recordings/FILE`) with the connection law (`basis`, `truth`, zero
+/// `initial`) and the model's sub-steps per sample replaced: the accuracy tests vary these
+/// over one problem.
+pub fn setup_variant(
+    file: &str,
+    basis: &[&str],
+    truth: &[f64],
+    model_substeps: usize,
+) -> jointid::setup::Setup {
+    let path = repo(&format!("recordings/{file}"));
+    let text = std::fs::read_to_string(&path).expect("shipped setup");
+    let list = |v: Vec<String>| v.join(", ");
+    let text: String = text
+        .lines()
+        .map(|l| {
+            let t = l.trim_start();
+            if t.starts_with("basis") {
+                format!(
+                    "basis = [{}]",
+                    list(basis.iter().map(|b| format!("\"{b}\"")).collect())
+                )
+            } else if t.starts_with("truth") {
+                format!(
+                    "truth = [{}]",
+                    list(truth.iter().map(|x| format!("{x:?}")).collect())
+                )
+            } else if t.starts_with("initial") {
+                format!("initial = [{}]", list(vec!["0.0".into(); basis.len()]))
+            } else if t.starts_with("substeps") {
+                format!("substeps = {model_substeps}")
+            } else {
+                l.to_string()
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("\n");
+    jointid::setup::Setup::from_toml(&text, &path.display().to_string()).expect("valid variant")
+}
