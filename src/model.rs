@@ -411,24 +411,7 @@ fn finish(
                 .position(|&r| r == fi)
                 .ok_or(ModelError::MasslessDof { what, dof: *d })
         };
-        let mut Lp = DMatrix::zeros(n, setup.excitation.len());
-        for (j, e) in setup.excitation.iter().enumerate() {
-            Lp[(locate(format!("excitation `{}`", e.name), &e.dof)?, j)] = 1.0;
-        }
-        let mut Lc = DMatrix::zeros(n, setup.connections.len());
-        for (j, c) in setup.connections.iter().enumerate() {
-            Lc[(locate(format!("connection `{}`", c.name), &c.a)?, j)] += 1.0;
-            if let Some(b) = &c.b {
-                Lc[(locate(format!("connection `{}`", c.name), b)?, j)] -= 1.0;
-            }
-        }
-        let mut stations = Vec::new();
-        for s in &setup.sensors {
-            stations.push(StationChannel {
-                dof: locate(format!("sensor `{}`", s.name), &s.dof)?,
-                quantity: s.quantity,
-            });
-        }
+        let (Lp, Lc, stations) = place(setup, n, locate)?;
         Ok(Model {
             dofs,
             M: Mc,
@@ -442,6 +425,39 @@ fn finish(
             sparse: None,
         })
     }
+}
+
+/// Excitation and connection placement (`Lp`, `Lc`, `δ = Lcᵀu` with `+1` at `a`, `−1` at
+/// `b`) and the sensor stations, with `locate` mapping a named DOF to its retained row (the
+/// dense and the sparse-only assembly differ only in that map).
+#[allow(clippy::type_complexity)]
+fn place(
+    setup: &Setup,
+    n: usize,
+    locate: impl Fn(String, &DofRef) -> Result<usize, ModelError>,
+) -> Result<(DMatrix<f64>, DMatrix<f64>, Vec<StationChannel>), ModelError> {
+    let mut Lp = DMatrix::zeros(n, setup.excitation.len());
+    for (j, e) in setup.excitation.iter().enumerate() {
+        Lp[(locate(format!("excitation `{}`", e.name), &e.dof)?, j)] = 1.0;
+    }
+    let mut Lc = DMatrix::zeros(n, setup.connections.len());
+    for (j, c) in setup.connections.iter().enumerate() {
+        Lc[(locate(format!("connection `{}`", c.name), &c.a)?, j)] += 1.0;
+        if let Some(b) = &c.b {
+            Lc[(locate(format!("connection `{}`", c.name), b)?, j)] -= 1.0;
+        }
+    }
+    let stations = setup
+        .sensors
+        .iter()
+        .map(|s| {
+            Ok(StationChannel {
+                dof: locate(format!("sensor `{}`", s.name), &s.dof)?,
+                quantity: s.quantity,
+            })
+        })
+        .collect::<Result<_, ModelError>>()?;
+    Ok((Lp, Lc, stations))
 }
 
 /// Whether a model is assembled in sparse form only: more than [`DENSE_MAX_DOFS`] DOFs and
@@ -478,24 +494,7 @@ fn finish_sparse(
     let locate = |what: String, d: &DofRef| -> Result<usize, ModelError> {
         find(d).ok_or(ModelError::NoSuchDof { what, dof: *d })
     };
-    let mut Lp = DMatrix::zeros(n, setup.excitation.len());
-    for (j, e) in setup.excitation.iter().enumerate() {
-        Lp[(locate(format!("excitation `{}`", e.name), &e.dof)?, j)] = 1.0;
-    }
-    let mut Lc = DMatrix::zeros(n, setup.connections.len());
-    for (j, c) in setup.connections.iter().enumerate() {
-        Lc[(locate(format!("connection `{}`", c.name), &c.a)?, j)] += 1.0;
-        if let Some(b) = &c.b {
-            Lc[(locate(format!("connection `{}`", c.name), b)?, j)] -= 1.0;
-        }
-    }
-    let mut stations = Vec::new();
-    for s in &setup.sensors {
-        stations.push(StationChannel {
-            dof: locate(format!("sensor `{}`", s.name), &s.dof)?,
-            quantity: s.quantity,
-        });
-    }
+    let (Lp, Lc, stations) = place(setup, n, locate)?;
     Ok(Some(Model {
         dofs: full.to_vec(),
         M: DMatrix::zeros(0, 0),

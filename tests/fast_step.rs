@@ -65,18 +65,24 @@ fn identified(setup: &Setup, substeps: usize, steps: usize) -> Vec<f64> {
         .collect()
 }
 
-#[test]
-fn modal_and_dense_steps_identify_the_same_parameters_on_the_paper_model() {
-    for (name, substeps) in [("two-beam-spring.toml", 1), ("two-beam-friction.toml", 1)] {
+/// The `step` implementation identifies the same parameters as the dense step on the paper
+/// model, and both are the truth: non-zero parameters to 1e-9 relative; parameters whose
+/// truth is 0 (const, v, and the spring case's friction) come out as round-off, ~1e-8 from
+/// both steps, and must agree to 1e-6 in their own units (N, N·s/m), against joint forces
+/// of ~1e3 N. One sub-step per sample: with sub-steps the simulated data are no longer the
+/// estimator's own discretisation (spring 299,923 instead of 300,000 at 4 sub-steps), the
+/// estimator is not exact, and its error recursion amplifies round-off differences to ~1e-8
+/// relative; the sub-step maps themselves are compared to 1e-10 in the unit tests of
+/// `integrate::fast` and `integrate::sparse`.
+fn assert_same_parameters_as_dense(step: &str) {
+    let substeps = 1;
+    for name in ["two-beam-spring.toml", "two-beam-friction.toml"] {
         let d = identified(&setup_with(name, "dense", substeps), substeps, 72);
-        let m = identified(&setup_with(name, "modal", substeps), substeps, 72);
-        eprintln!("{name}: dense {d:?}\n modal {m:?}");
-        // Non-zero parameters: 1e-9 relative. Parameters whose truth is 0 (const, v, and
-        // the spring case's friction) come out as round-off, ~1e-8 from both steps: they
-        // must agree to 1e-6 in their own units (N, N·s/m), against joint forces of ~1e3 N.
+        let f = identified(&setup_with(name, step, substeps), substeps, 72);
+        eprintln!("{name}: dense {d:?}\n {step} {f:?}");
         let truth = setup_with(name, "dense", 1).truth_params().unwrap();
-        for ((a, b), t) in d.iter().zip(&m).zip(&truth) {
-            assert!(a.is_finite() && b.is_finite(), "{name}: {d:?} vs {m:?}");
+        for ((a, b), t) in d.iter().zip(&f).zip(&truth) {
+            assert!(a.is_finite() && b.is_finite(), "{name}: {d:?} vs {f:?}");
             let tol = if *t == 0.0 {
                 1e-6
             } else {
@@ -84,47 +90,25 @@ fn modal_and_dense_steps_identify_the_same_parameters_on_the_paper_model() {
             };
             assert!(
                 (a - b).abs() <= tol,
-                "{name} substeps {substeps}: dense {d:?} vs modal {m:?}"
+                "{name} substeps {substeps}: dense {d:?} vs {step} {f:?}"
             );
             // And both are the truth (the estimator is exact on its own noise-free data).
             assert!(
                 (b - t).abs() <= 1e-6 * t.abs().max(1.0),
-                "{name}: {m:?} vs {truth:?}"
+                "{name}: {f:?} vs {truth:?}"
             );
         }
     }
 }
 
 #[test]
+fn modal_and_dense_steps_identify_the_same_parameters_on_the_paper_model() {
+    assert_same_parameters_as_dense("modal");
+}
+
+#[test]
 fn sparse_and_dense_steps_identify_the_same_parameters_on_the_paper_model() {
-    // Same data and tolerances as the modal comparison above, one sub-step per sample: with
-    // sub-steps the simulated data are no longer the estimator's own discretisation (spring
-    // 299,923 instead of 300,000 at 4 sub-steps), the estimator is not exact, and its error
-    // recursion amplifies round-off differences to ~1e-8 relative (see the module docs).
-    // The sub-steps themselves are compared map against map, to 1e-10, in the unit test
-    // `integrate::sparse::tests`.
-    for (name, substeps) in [("two-beam-spring.toml", 1), ("two-beam-friction.toml", 1)] {
-        let d = identified(&setup_with(name, "dense", substeps), substeps, 72);
-        let s = identified(&setup_with(name, "sparse", substeps), substeps, 72);
-        eprintln!("{name}: dense {d:?}\n sparse {s:?}");
-        let truth = setup_with(name, "dense", 1).truth_params().unwrap();
-        for ((a, b), t) in d.iter().zip(&s).zip(&truth) {
-            assert!(a.is_finite() && b.is_finite(), "{name}: {d:?} vs {s:?}");
-            let tol = if *t == 0.0 {
-                1e-6
-            } else {
-                1e-9 * a.abs().max(b.abs())
-            };
-            assert!(
-                (a - b).abs() <= tol,
-                "{name} substeps {substeps}: dense {d:?} vs sparse {s:?}"
-            );
-            assert!(
-                (b - t).abs() <= 1e-6 * t.abs().max(1.0),
-                "{name}: {s:?} vs {truth:?}"
-            );
-        }
-    }
+    assert_same_parameters_as_dense("sparse");
 }
 
 #[test]

@@ -95,6 +95,13 @@ pub struct EstimatorDiagnostics {
     pub warnings: Vec<String>,
 }
 
+impl EstimatorDiagnostics {
+    /// A named tuning figure (e.g. `posterior_delta_std_m[0]`), if the estimator reports it.
+    pub fn tuning_value(&self, key: &str) -> Option<f64> {
+        self.tuning.iter().find(|(k, _)| k == key).map(|(_, v)| *v)
+    }
+}
+
 /// A residual-force estimator: Steps III and IV for one sample at a time.
 pub trait ResidualEstimator: Send {
     fn name(&self) -> &'static str;
