@@ -883,8 +883,11 @@ fn finish_with_output_error(
     }
     // Each sensitivity is a full implicit simulation of the record; beyond this many
     // sub-steps per simulation the stage would dominate the replay time by far.
+    // A linear law runs one composed map per sample (`simulate::law_is_linear`), whatever
+    // the sub-steps.
     const MAX_SUBSTEPS: usize = 4_000_000;
-    if data.len().saturating_mul(opts.substeps) > MAX_SUBSTEPS {
+    let linear = crate::simulate::law_is_linear(setup);
+    if !linear && data.len().saturating_mul(opts.substeps) > MAX_SUBSTEPS {
         result.notes.push(format!(
             "output-error refinement and Cramér–Rao bound skipped: {} samples × {} sub-steps exceed {MAX_SUBSTEPS} simulated steps per run",
             data.len(),
@@ -1000,7 +1003,8 @@ fn finish_with_output_error(
 }
 
 /// Most simulated sub-steps per output-error run when the refinement raises the model's
-/// sub-steps (a time budget: a refinement takes about a hundred runs).
+/// sub-steps (a time budget: a refinement takes about a hundred runs). Not applied to a
+/// linear law, whose runs cost one composed map per sample.
 const MAX_RAISED_STEPS: usize = 700_000;
 
 /// Data from a continuous structure are followed only approximately by the model's Newmark
@@ -1026,7 +1030,10 @@ fn raise_substeps(
     let nobs = (data.len() * sigma.len()) as f64;
     let significant = 3.0 * (2.0 * nobs).sqrt() / nobs;
     let mut sub = opts.substeps;
-    while sub * 2 <= 8 * opts.substeps && data.len() * sub * 2 <= MAX_RAISED_STEPS {
+    // A linear law costs one composed map per sample whatever the sub-steps: only the 8×
+    // cap applies.
+    let linear = crate::simulate::law_is_linear(setup);
+    while sub * 2 <= 8 * opts.substeps && (linear || data.len() * sub * 2 <= MAX_RAISED_STEPS) {
         let s2 = sub * 2;
         // Checked at every minimum found: at a wrong stiffness finer steps do not help.
         let points: Vec<(Vec<f64>, f64)> = match &r.report.scan {
