@@ -472,7 +472,18 @@ pub fn refine_global(
         grid.push((p, c));
     }
     // Local minima of the scan, lowest first; the three best not already in the plain
-    // result's basin start descents.
+    // result's basin start descents. On the whole record a scan point within a basin
+    // half-width of the plain result descends into it. On a prefix the prefix's basin is
+    // n/len times wider and holds several whole-record minima, so only points within 3
+    // standard errors of the plain result are skipped (measured at 20,000 samples, 50 %
+    // noise: the scan point next to the truth lay 1.2 % from the plain result, inside the
+    // prefix basin, was skipped, and the answer stayed 1.2 % off with cost 1.52 against
+    // 0.92 at the truth).
+    let same_basin = if len < n {
+        3.0 * plain.std_errors[j]
+    } else {
+        prefix_half_width
+    };
     let mut local: Vec<usize> = (0..points)
         .filter(|&i| {
             let c = grid[i].1;
@@ -490,7 +501,7 @@ pub fn refine_global(
     let mut best = plain.clone();
     for &i in local
         .iter()
-        .filter(|&&i| (grid[i].0[j] - plain.values[j]).abs() > prefix_half_width)
+        .filter(|&&i| (grid[i].0[j] - plain.values[j]).abs() > same_basin)
         .take(3)
     {
         let mut p = grid[i].0.clone();
