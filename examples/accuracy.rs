@@ -117,6 +117,7 @@ fn run(c: &Config) -> Result<(Setup, Vec<f64>, Stats)> {
         o.estimator = c.estimator;
         o.passes = c.passes;
         o.output_error = c.output_error && c.estimator == EstimatorKind::Kalman;
+        let t0 = std::time::Instant::now();
         let r = match identify(&setup, &data, &o, Some(&truth), &mut |_| {}, &mut |_, _| {}) {
             Ok(r) => r,
             Err(e) => {
@@ -138,13 +139,17 @@ fn run(c: &Config) -> Result<(Setup, Vec<f64>, Stats)> {
                 .zip(&truth)
                 .map(|(q, t)| {
                     format!(
-                        "{:+.3} % (se {:.3} %)",
+                        "{:+.5} % (se {:.5} %)",
                         100.0 * (q.value - t) / t,
                         100.0 * q.std_error / t
                     )
                 })
                 .collect();
-            eprintln!("seed {seed}: {}", errs.join(", "));
+            eprintln!(
+                "seed {seed}: {} ({:.1} s)",
+                errs.join(", "),
+                t0.elapsed().as_secs_f64()
+            );
             if let Some(oe) = &r.output_error {
                 eprintln!(
                     "  output error: cost {:.4} → {:.4}, {}",
@@ -196,7 +201,7 @@ fn print_rows(c: &Config, setup: &Setup, truth: &[f64], st: &Stats) {
         let unit = if truth[j] != 0.0 { "%" } else { "abs" };
         let f = |x: f64| {
             if unit == "%" {
-                format!("{:.3}", 100.0 * x / scale)
+                format!("{:.5}", 100.0 * x / scale)
             } else {
                 format!("{x:.3e}")
             }
