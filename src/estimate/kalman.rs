@@ -154,14 +154,8 @@ impl KalmanEstimator {
         let mut A = DMatrix::zeros(nz, nz);
         A.view_mut((0, 0), (3 * n, 3 * n)).copy_from(&phi);
         A.view_mut((0, 3 * n), (3 * n, q)).copy_from(&gamma);
-        let accel_only = m > 0
-            && stations
-                .channels
-                .iter()
-                .all(|&(_, qty)| qty == crate::setup::Quantity::Acceleration);
-        let decay = residual_force_decay(model, inp.dt_s, accel_only);
         for j in 0..q {
-            A[(3 * n + j, 3 * n + j)] = decay;
+            A[(3 * n + j, 3 * n + j)] = 1.0;
         }
         let mut B = DMatrix::zeros(nz, q);
         B.view_mut((0, 0), (3 * n, q)).copy_from(&gamma);
@@ -379,19 +373,6 @@ fn force_scale(inp: &EstimatorInputs<'_>) -> f64 {
 /// [`force_scale`] of a model: `1e-5 ×` its largest diagonal stiffness (N per 10 µm).
 pub fn force_scale_of(model: &crate::model::Model) -> f64 {
     1e-5 * model.K.diagonal().amax().max(1.0)
-}
-
-/// Per-sample AR(1) coefficient of the residual force (1 = random walk).
-fn residual_force_decay(model: &crate::model::Model, dt_s: f64, accel_only: bool) -> f64 {
-    let frac: f64 = std::env::var("JOINTID_DECAY")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(0.0);
-    if !accel_only || frac <= 0.0 {
-        return 1.0;
-    }
-    let f1 = model.natural_frequencies_hz().first().copied().unwrap_or(0.0);
-    (-2.0 * std::f64::consts::PI * frac * f1 * dt_s).exp()
 }
 
 /// Model-error force std at every DOF relative to the force scale.
