@@ -257,14 +257,28 @@ pub struct SampleRecord {
 
 /// Fewer independent measured quantities than connection DOFs cannot determine the residual
 /// forces, whatever the estimator: check rank(S) once, up front.
+///
+/// Accelerometer-only layouts are refused for the Kalman estimator here (the live pipeline
+/// runs it online, where nothing else could identify them); the batch [`identify`] lets
+/// them through to its output-error path when that can run (see
+/// `identify_acceleration_only`).
 pub fn check_observability(
     setup: &Setup,
     model: &Model,
     opts: &IdentifyOptions,
 ) -> Result<(), EstimateError> {
+    check_observability_with(setup, model, opts, false)
+}
+
+fn check_observability_with(
+    setup: &Setup,
+    model: &Model,
+    opts: &IdentifyOptions,
+    accel_only_by_output_error: bool,
+) -> Result<(), EstimateError> {
     let stations = crate::estimate::Stations::from_model(model);
     if opts.estimator == EstimatorKind::Kalman
-        && !(opts.output_error && model.has_dense() && has_spring_basis(setup))
+        && !accel_only_by_output_error
         && acceleration_only(model)
     {
         return Err(EstimateError::AccelerationOnly {
@@ -500,8 +514,7 @@ fn restate_with_residual_noise(
             // Floor as for the difference estimate (noise-free data of the model's own
             // discretisation leave round-off only).
             let y_rms = (data.response.iter().map(|y| y[k] * y[k]).sum::<f64>() / rows).sqrt();
-            (sigma[k] * ms.sqrt())
-                .max(crate::estimate::tuning::NOISE_FLOOR_RELATIVE * y_rms)
+            (sigma[k] * ms.sqrt()).max(crate::estimate::tuning::NOISE_FLOOR_RELATIVE * y_rms)
         })
         .collect();
     if refit.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
@@ -927,7 +940,8 @@ pub fn identify(
         return Err(IdentifyError::TooShort(data.len()));
     }
     let model = Model::for_identification(setup)?;
-    check_observability(setup, &model, opts)?;
+    let by_output_error = opts.output_error && model.has_dense() && has_spring_basis(setup);
+    check_observability_with(setup, &model, opts, by_output_error)?;
     let (sigma, estimated) = channel_noise(setup, data);
     let mut params = setup.initial_params();
     let mut result = Identification {
@@ -949,7 +963,9 @@ pub fn identify(
         ));
     }
     if opts.estimator == EstimatorKind::Kalman && acceleration_only(&model) {
-        return identify_acceleration_only(setup, &model, data, opts, truth, &sigma, &estimated, result);
+        return identify_acceleration_only(
+            setup, &model, data, opts, truth, &sigma, &estimated, result,
+        );
     }
     let q = setup.connections.len();
     let mut frozen: Option<KalmanTuning> = None;
