@@ -408,15 +408,23 @@ fn identify_acceleration_only(
     // 50 % noise, seed 1: with 16 sub-steps on 64-sub-step data the global minimum lies at
     // +24 %, cost 0.97, and none near the truth; with 64 the truth, cost 0.40). The
     // sub-step raise of the output-error stage checks only at the minima found, where finer
-    // steps do not help. So: scan with the finest model allowed (8× the setup's, within
-    // `MAX_RAISED_STEPS` over the record), then take the fewest sub-steps (doubling from the
-    // setup's) whose whole-record cost at that start is within 3 standard deviations of a χ²
-    // of the finest's.
+    // steps do not help. So: scan with the setup's sub-steps and each doubling up to 8× (within
+    // `MAX_RAISED_STEPS` over the record) and keep the start of the lowest prefix cost (data
+    // of the model's own discretisation pick the setup's, continuous data a finer one), then
+    // take the fewest sub-steps (doubling from the setup's) whose whole-record cost at that
+    // start is within 3 standard deviations of a χ² of that level's.
     let mut finest = opts.substeps;
+    let (mut start, mut cost) = scan(finest);
     while finest * 2 <= 8 * opts.substeps && data.len() * finest * 2 <= MAX_RAISED_STEPS {
         finest *= 2;
+        let (s2, c2) = scan(finest);
+        if c2 < cost {
+            (start, cost) = (s2, c2);
+        } else {
+            finest /= 2;
+            break;
+        }
     }
-    let (start, cost) = scan(finest);
     if !cost.is_finite() {
         return Err(refuse());
     }
