@@ -52,6 +52,8 @@ pub struct OutputErrorReport {
     /// The residual-force (Kalman/paper) estimate it started from.
     pub start_values: Vec<f64>,
     pub note: String,
+    /// Model Newmark sub-steps per sample of the refinement that produced this report.
+    pub substeps: usize,
     /// The stiffness scan for other minima, when run (see [`refine_global`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub scan: Option<ScanReport>,
@@ -346,6 +348,7 @@ pub fn refine(
         report: OutputErrorReport {
             accepted,
             iterations,
+            substeps,
             cost_start: cost_start / nobs,
             cost_end: s.cost / nobs,
             start_values: start.to_vec(),
