@@ -111,8 +111,23 @@ pub fn residuals(
     Ok((r, cost))
 }
 
+/// Finite-difference step, in parameter scales (standard errors), of every parameter of a
+/// law with a `sign` term: a secant over ±1 standard error, not a tangent.
+///
+/// Why: with a set-valued friction law the simulated outputs are only piecewise smooth in
+/// the parameters — each stick–slip event of the discrete-time simulation starts or ends one
+/// sample earlier or later as a parameter moves — so a tangent (step 1e-3 of the standard
+/// error) sees the slope inside one smooth piece, which is steeper than the cost's slope
+/// over the interval that matters. Measured (Coulomb `sign(v)` + spring, 10 % noise, 2,000
+/// samples, seed 1, at the truth): the friction bound is 0.26 % with a 1e-6 relative step,
+/// 0.53 % with 1e-3 and 0.80 % with 1e-2, where the cost's own curvature gives 0.83 %; the
+/// Levenberg–Marquardt descent on the tangent stopped where the truth had a lower cost by
+/// Δχ² = 15 (seed 3) and 395 (seed 4, friction +7.4 % with a 0.10 % stated error).
+const SIGN_LAW_STEP: f64 = 1.0;
+
 /// Sensitivities by finite differences. `scales[j]` is the parameter's scale (a standard
-/// error or a magnitude); the step is `1e-3 × scales[j]`, at least `1e-7 |p_j|`.
+/// error or a magnitude); the step is `1e-3 × scales[j]` (`SIGN_LAW_STEP × scales[j]` when
+/// the law has a `sign` term), at least `1e-7 |p_j|`.
 #[allow(clippy::too_many_arguments)]
 pub fn sensitivities(
     setup: &Setup,
@@ -143,8 +158,13 @@ pub fn sensitivities(
     }
     let cost = residual.iter().map(|x| x * x).sum();
     let mut columns = Vec::with_capacity(p0.len());
+    let frac = if basis.iter().any(is_sign) {
+        SIGN_LAW_STEP
+    } else {
+        1e-3
+    };
     for j in 0..p0.len() {
-        let h = (1e-3 * scales[j].abs())
+        let h = (frac * scales[j].abs())
             .max(1e-7 * p0[j].abs())
             .max(f64::MIN_POSITIVE.sqrt());
         let mut plus = p0.clone();
@@ -335,7 +355,30 @@ pub fn refine(
         }
     }
     let (F, _) = normal_equations(&s);
-    let bound = crlb_from_fisher(&F).ok_or(SimulateError::Singular)?;
+    let mut bound = crlb_from_fisher(&F).ok_or(SimulateError::Singular)?;
+    // A secant's slope depends on its width: make the width the bound it gives (within 30 %,
+    // at most three more Jacobians), so the stated error is the one over its own interval.
+    if basis.iter().any(is_sign) {
+        for _ in 0..3 {
+            let off = bound
+                .iter()
+                .zip(&scales)
+                .any(|(b, s)| !(b / s).is_finite() || (b / s - 1.0).abs() > 0.3);
+            if !off {
+                break;
+            }
+            scales = bound.iter().map(|x| x.max(1e-12)).collect();
+            let Ok(s2) = sensitivities(
+                setup, model, &p, &scales, excitation, response, sigma, substeps,
+            ) else {
+                break;
+            };
+            let Some(b2) = crlb_from_fisher(&normal_equations(&s2).0) else {
+                break;
+            };
+            bound = b2;
+        }
+    }
     let dof = (nobs - p.len() as f64).max(1.0);
     let ratio = (s.cost / dof).max(1.0).sqrt();
     let accepted = s.cost < cost_start;
