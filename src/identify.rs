@@ -747,7 +747,14 @@ pub fn identify(
                 r
             }
             Err(e) => {
-                if result.passes.is_empty() {
+                // No partial result from an undetermined deformation after a provisional
+                // first pass that was undetermined too: that is the refusal it deferred.
+                let deferred = matches!(e, IdentifyError::Undetermined { .. })
+                    && result.passes.len() == 1
+                    && result.passes[0].diagnostics.tuning.iter().any(|(k, v)| {
+                        k.starts_with("delta_uncertainty_ratio") && *v > MAX_DEFORMATION_UNCERTAINTY
+                    });
+                if result.passes.is_empty() || deferred {
                     return Err(e);
                 }
                 result.failure = Some(e.to_string());
@@ -1156,11 +1163,11 @@ fn run_pass(
             acc.widen_band(c, opts.stick_band_sigmas * d, opts.stick_band_sigmas * v);
             tracker.widen_band(c, opts.stick_band_sigmas * d, opts.stick_band_sigmas * v);
         }
-        if setup
-            .connections
-            .iter()
-            .any(|c| c.basis.iter().any(|b| matches!(b, Basis::SignU | Basis::SignV)))
-        {
+        if setup.connections.iter().any(|c| {
+            c.basis
+                .iter()
+                .any(|b| matches!(b, Basis::SignU | Basis::SignV))
+        }) {
             let mut n = ParameterAccumulator::new(setup, opts.stick_band, 1.0);
             n.keep_rows();
             narrow = Some(n);
@@ -1207,7 +1214,16 @@ fn run_pass(
         .iter()
         .map(|s| (s / delta_rows.max(1) as f64).sqrt())
         .collect();
-    deformation_determined(setup, est.diagnostics(), &delta_rms, pass, &mut tuning)?;
+    let mut warnings = Vec::new();
+    deformation_determined(
+        setup,
+        est.diagnostics(),
+        &delta_rms,
+        pass,
+        pass == 1 && opts.passes > 1,
+        &mut tuning,
+        &mut warnings,
+    )?;
     let track = tracker.finish(data.samples.last().copied());
     let fits = acc.solve(opts.max_condition);
     let narrow_fits = narrow.as_ref().map(|n| n.solve(opts.max_condition));
@@ -1218,7 +1234,6 @@ fn run_pass(
     let mut force_scales = Vec::new();
     let mut rows_used = acc.rows();
     let mut rows_excluded = acc.excluded();
-    let mut warnings = Vec::new();
     for (c, fit) in fits.into_iter().enumerate() {
         let conn = &setup.connections[c];
         let total = rows_used[c] + rows_excluded[c];
@@ -1317,12 +1332,23 @@ pub const MAX_DEFORMATION_UNCERTAINTY: f64 = 1.0;
 
 /// Refuse a pass whose joint deformations the measurements do not determine (see
 /// [`MAX_DEFORMATION_UNCERTAINTY`]); the figures go into the pass diagnostics either way.
+///
+/// A `provisional` pass (the first of several) only warns: it runs with the setup's initial
+/// parameters, typically no joint stiffness, so the filter's model of the joint is softer
+/// than the structure's and its posterior std of δ larger. The next pass, with the fitted
+/// parameters, is checked and refused (see [`identify`]). Measured (Coulomb `sign(v)` +
+/// spring, continuous data, 100 % noise, 2,000 samples, seed 1): ratio 1.23 in pass 1,
+/// 0.91 in pass 2, 0.75 from pass 4 on; refusing pass 1 had refused 3 of 4 seeds, which the
+/// output-error stage identifies within 2.4 % and inside their stated intervals.
+#[allow(clippy::too_many_arguments)]
 fn deformation_determined(
     setup: &Setup,
     diagnostics: &crate::estimate::EstimatorDiagnostics,
     delta_rms: &[f64],
     pass: usize,
+    provisional: bool,
     tuning: &mut Vec<(String, f64)>,
+    warnings: &mut Vec<String>,
 ) -> Result<(), IdentifyError> {
     for (c, conn) in setup.connections.iter().enumerate() {
         let Some(std) = diagnostics.tuning_value(&format!("posterior_delta_std_m[{c}]")) else {
@@ -1332,7 +1358,12 @@ fn deformation_determined(
         let ratio = std / rms.max(f64::MIN_POSITIVE);
         tuning.push((format!("delta_rms_m[{c}]"), rms));
         tuning.push((format!("delta_uncertainty_ratio[{c}]"), ratio));
-        if ratio > MAX_DEFORMATION_UNCERTAINTY {
+        if ratio > MAX_DEFORMATION_UNCERTAINTY && provisional {
+            warnings.push(format!(
+                "connection `{}`: in pass {pass}, run with the setup's initial parameters, the posterior std of the joint deformation ({std:.3e} m) is {ratio:.2}× the RMS of its estimate (limit {MAX_DEFORMATION_UNCERTAINTY}); the identification is refused if the next pass, run with the fitted parameters, exceeds it too",
+                conn.name
+            ));
+        } else if ratio > MAX_DEFORMATION_UNCERTAINTY {
             return Err(IdentifyError::Undetermined {
                 pass,
                 connection: conn.name.clone(),
