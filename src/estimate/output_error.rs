@@ -9,7 +9,10 @@
 //! per channel the Fisher information of `p` is `F = Σᵢ Σ_k J_ik J_ikᵀ / σ_k²`,
 //! `J_ik = ∂ŷ_ik/∂p`, and no unbiased estimator has a smaller variance than `(F⁻¹)_jj`.
 //! `J` is taken by central differences (forward from 0 for friction levels, which must stay
-//! ≥ 0), with steps of 1e-3 of each parameter's scale.
+//! ≥ 0), with steps of 1e-3 of each parameter's scale — or, for a law with a `sign` term, of
+//! one scale (a secant over ±1 standard error, see `SIGN_LAW_STEP`): the outputs of a
+//! sticking and slipping joint are only piecewise smooth in the parameters, so for such laws
+//! the "bound" is the information of that secant, not a tangent Cramér–Rao bound.
 //!
 //! Why refine at all: the Kalman/least-squares estimate is a two-stage estimate (residual
 //! force, then a regression on estimated states) and does not reach the bound at high noise;
