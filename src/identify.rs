@@ -966,6 +966,12 @@ fn finish_with_output_error(
                         last.parameters[scan.parameter].basis
                     ));
                 }
+                if r.report.rough {
+                    result.notes.push(format!(
+                        "the output-error cost is rough at the scale of the standard errors (after {} restarts from lower probes within 8 standard errors a lower one remained): the standard errors are widened to the distance the restarts moved the estimate and may still be too small",
+                        crate::estimate::output_error::PROBE_ROUNDS
+                    ));
+                }
                 if r.report.cost_end > 2.0 {
                     result.notes.push(format!(
                         "the model explains the outputs only to {:.1}× the noise variance (normalised output-error cost): unmodelled dynamics or too few [integrator] substeps; the standard errors do not include the bias this causes",

@@ -55,6 +55,9 @@ pub struct OutputErrorReport {
     /// The residual-force (Kalman/paper) estimate it started from.
     pub start_values: Vec<f64>,
     pub note: String,
+    /// Set when the probe of [`refine_global`] still found lower costs within a few standard
+    /// errors after its last round: the standard errors are not reliable.
+    pub rough: bool,
     /// The stiffness scan for other minima, when run (see [`refine_global`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub scan: Option<ScanReport>,
@@ -403,6 +406,7 @@ pub fn refine(
                 format!("stopped after {max_iter} Gauss–Newton iterations")
             },
             scan: None,
+            rough: false,
         },
     })
 }
@@ -437,6 +441,11 @@ pub struct ScanReport {
     /// errors are widened to cover it.
     pub ambiguous: bool,
 }
+
+/// Rounds of the probe of [`refine_global`] (each: 8 simulations per parameter, then a
+/// descent when a probe is lower) and the probe offsets in standard errors.
+pub const PROBE_ROUNDS: usize = 4;
+const PROBE_STEPS: [f64; 4] = [1.0, 2.0, 4.0, 8.0];
 
 /// Most scan points on one prefix; the prefix is shortened (the basin widens as the record
 /// shortens) so that the scan needs no more.
@@ -578,6 +587,58 @@ pub fn refine_global(
             best = r;
         }
     }
+    // Probe the best point at ±1, 2, 4, 8 of its standard errors along every parameter: on a
+    // rough cost (the paper's `sign(u)` friction) the descent can stop where a point within
+    // a few standard errors has a lower cost — then the stated error means nothing. Descend
+    // again from the lowest probe while one is lower by more than Δχ² = 1 (× the normalised
+    // cost when the model leaves more than the noise).
+    let mut probed = 0;
+    let before_probe = best.values.clone();
+    for _ in 0..PROBE_ROUNDS {
+        let mut lowest: Option<(Vec<f64>, f64)> = None;
+        for j in 0..best.values.len() {
+            for k in PROBE_STEPS {
+                for sign in [-1.0, 1.0] {
+                    let mut p = best.values.clone();
+                    p[j] += sign * k * best.std_errors[j];
+                    let p = feasible(&basis, &p);
+                    let c = residuals(setup, model, &p, excitation, response, sigma, substeps)
+                        .map(|r| r.1 / nobs)
+                        .unwrap_or(f64::INFINITY);
+                    if lowest.as_ref().is_none_or(|l| c < l.1) {
+                        lowest = Some((p, c));
+                    }
+                }
+            }
+        }
+        let Some((p, c)) = lowest else { break };
+        if (best.report.cost_end - c) * nobs <= best.report.cost_end.max(1.0) {
+            break;
+        }
+        let Ok(r) = refine(
+            setup,
+            model,
+            &p,
+            &best.std_errors,
+            excitation,
+            response,
+            sigma,
+            substeps,
+            max_iter,
+        ) else {
+            break;
+        };
+        if r.report.cost_end >= best.report.cost_end {
+            break;
+        }
+        probed += 1;
+        minima.push(Minimum {
+            values: r.values.clone(),
+            cost: r.report.cost_end,
+            from: "probe".into(),
+        });
+        best = r;
+    }
     minima.sort_by(|a, b| a.cost.total_cmp(&b.cost));
     // Another minimum more than 3 standard errors away whose cost is within the
     // likelihood-ratio threshold cannot be told apart: widen the errors to cover it.
@@ -613,6 +674,30 @@ pub fn refine_global(
         best.report.note = format!(
             "{}; the global minimum came from the stiffness scan (the descent from the residual-force estimate ended at a {:.4} normalised cost, this one at {:.4})",
             best.report.note, plain.report.cost_end, best.report.cost_end
+        );
+    }
+    if probed > 0 {
+        best.report.note = format!(
+            "{}; {probed} probe(s) within 8 standard errors of the descent's end found a lower cost and the descent was restarted there (a rough cost)",
+            best.report.note
+        );
+    }
+    if probed == PROBE_ROUNDS {
+        // Still descending after every round: the cost is rough at the scale of the stated
+        // errors, which then say nothing about the estimate's error. Widen them to the
+        // distance the probes moved it, and say that even these may be too small.
+        for ((s, a), b) in best
+            .std_errors
+            .iter_mut()
+            .zip(&best.values)
+            .zip(&before_probe)
+        {
+            *s = s.max((a - b).abs() / 1.96);
+        }
+        best.report.rough = true;
+        best.report.note = format!(
+            "{}; every probe round found a lower cost: the cost is rough at the scale of the standard errors, which are widened to the distance the probes moved the estimate and may still be too small",
+            best.report.note
         );
     }
     if ambiguous {
