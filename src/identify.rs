@@ -1039,7 +1039,14 @@ pub fn identify(
                 r
             }
             Err(e) => {
-                if result.passes.is_empty() {
+                // No partial result from an undetermined deformation after a provisional
+                // first pass that was undetermined too: that is the refusal it deferred.
+                let deferred = matches!(e, IdentifyError::Undetermined { .. })
+                    && result.passes.len() == 1
+                    && result.passes[0].diagnostics.tuning.iter().any(|(k, v)| {
+                        k.starts_with("delta_uncertainty_ratio") && *v > MAX_DEFORMATION_UNCERTAINTY
+                    });
+                if result.passes.is_empty() || deferred {
                     return Err(e);
                 }
                 result.failure = Some(e.to_string());
@@ -1254,6 +1261,21 @@ fn finish_with_output_error(
                         last.parameters[scan.parameter].basis
                     ));
                 }
+                let sign_u = setup
+                    .connections
+                    .iter()
+                    .any(|c| c.basis.iter().any(|b| matches!(b, Basis::SignU)));
+                if sign_u && r.report.accepted && !r.report.rough {
+                    result.notes.push(
+                        "`sign(u)` friction: its output-error cost has local minima beyond the reach of the probe (8 standard errors); on continuous data at 10 % noise the spread over seeds was measured 57× the stated standard error (README, \"Friction on continuous data\"): treat these standard errors as lower limits".into(),
+                    );
+                }
+                if r.report.rough {
+                    result.notes.push(format!(
+                        "the output-error cost is rough at the scale of the standard errors (after {} restarts from lower probes within 8 standard errors a lower one remained): the standard errors are widened to the distance the restarts moved the estimate and may still be too small",
+                        crate::estimate::output_error::PROBE_ROUNDS
+                    ));
+                }
                 if r.report.cost_end > 2.0 {
                     result.notes.push(format!(
                         "the model explains the outputs only to {:.1}× the noise variance (normalised output-error cost): unmodelled dynamics or too few [integrator] substeps; the standard errors do not include the bias this causes",
@@ -1443,6 +1465,9 @@ fn run_pass(
         },
     );
     acc.keep_rows();
+    // The same fit with the band not widened by the estimator's uncertainty: used for a
+    // connection whose widened band leaves too few samples (see [`MAX_STUCK_FRACTION`]).
+    let mut narrow: Option<ParameterAccumulator> = None;
     if opts.stick_band_sigmas > 0.0 {
         let diag = est.diagnostics();
         let find = |key: String| diag.tuning_value(&key).unwrap_or(0.0);
@@ -1451,6 +1476,15 @@ fn run_pass(
             let v = find(format!("posterior_delta_v_std_m_s[{c}]"));
             acc.widen_band(c, opts.stick_band_sigmas * d, opts.stick_band_sigmas * v);
             tracker.widen_band(c, opts.stick_band_sigmas * d, opts.stick_band_sigmas * v);
+        }
+        if setup.connections.iter().any(|c| {
+            c.basis
+                .iter()
+                .any(|b| matches!(b, Basis::SignU | Basis::SignV))
+        }) {
+            let mut n = ParameterAccumulator::new(setup, opts.stick_band, 1.0);
+            n.keep_rows();
+            narrow = Some(n);
         }
     }
     let mut out = StepOutput::new(q);
@@ -1472,6 +1506,9 @@ fn run_pass(
         )? {
             diverged_at(&out)?;
             acc.push(&out);
+            if let Some(n) = narrow.as_mut() {
+                n.push(&out);
+            }
             tracker.push(&out);
             take(&out);
             on_sample(&out);
@@ -1480,6 +1517,9 @@ fn run_pass(
     while est.drain(&mut out) {
         diverged_at(&out)?;
         acc.push(&out);
+        if let Some(n) = narrow.as_mut() {
+            n.push(&out);
+        }
         tracker.push(&out);
         take(&out);
         on_sample(&out);
@@ -1488,22 +1528,57 @@ fn run_pass(
         .iter()
         .map(|s| (s / delta_rows.max(1) as f64).sqrt())
         .collect();
-    deformation_determined(setup, est.diagnostics(), &delta_rms, pass, &mut tuning)?;
+    let mut warnings = Vec::new();
+    deformation_determined(
+        setup,
+        est.diagnostics(),
+        &delta_rms,
+        pass,
+        pass == 1 && opts.passes > 1,
+        &mut tuning,
+        &mut warnings,
+    )?;
     let track = tracker.finish(data.samples.last().copied());
     let fits = acc.solve(opts.max_condition);
+    let narrow_fits = narrow.as_ref().map(|n| n.solve(opts.max_condition));
     let mut parameters = Vec::new();
     let mut cond = Vec::new();
     let mut rms = Vec::new();
     let mut k = 0;
     let mut force_scales = Vec::new();
+    let mut rows_used = acc.rows();
+    let mut rows_excluded = acc.excluded();
     for (c, fit) in fits.into_iter().enumerate() {
         let conn = &setup.connections[c];
+        let total = rows_used[c] + rows_excluded[c];
+        let too_many = rows_excluded[c] as f64 > MAX_STUCK_FRACTION * total as f64;
+        let mut source = &acc;
+        let fit = match (&narrow, &narrow_fits) {
+            (Some(n), Some(nf)) if (fit.is_err() || too_many) && nf[c].is_ok() => {
+                warnings.push(format!(
+                    "connection `{}`: the stuck band widened by {} posterior std of the deformation held {} of {total} samples ({}); fitted with the band not widened ({} held): the friction this fit gives is biased towards zero by the noisy stuck samples it now includes, and serves as the start of the output-error refinement",
+                    conn.name,
+                    opts.stick_band_sigmas,
+                    rows_excluded[c],
+                    match &fit {
+                        Ok(_) => "more than half".to_string(),
+                        Err(e) => e.to_string(),
+                    },
+                    n.excluded()[c]
+                ));
+                rows_used[c] = n.rows()[c];
+                rows_excluded[c] = n.excluded()[c];
+                source = n;
+                nf[c].clone()
+            }
+            _ => fit,
+        };
         let fit = fit.map_err(|source| IdentifyError::Refit {
             pass,
             connection: conn.name.clone(),
             source,
         })?;
-        let hac = acc.hac(c, &fit.values);
+        let hac = source.hac(c, &fit.values);
         if let Some((_, lag)) = &hac {
             tuning.push((format!("hac_lag_samples[{}]", conn.name), *lag as f64));
         }
@@ -1534,11 +1609,12 @@ fn run_pass(
         parameters,
         fit_condition: cond,
         fit_rms_residual: rms,
-        rows_used: acc.rows(),
-        rows_excluded_stuck: acc.excluded(),
+        rows_used,
+        rows_excluded_stuck: rows_excluded,
         diagnostics: {
             let mut d = est.diagnostics().clone();
             d.tuning.extend(tuning);
+            d.warnings.extend(warnings);
             d
         },
         max_change_std_errors: None,
@@ -1547,6 +1623,16 @@ fn run_pass(
     };
     Ok((report, track, used_tuning))
 }
+
+/// Largest fraction of a pass's samples the stuck band widened by the estimator's
+/// uncertainty may exclude from a friction connection's fit; beyond it (or when the widened
+/// fit is singular) the fit uses the band without the widening. Why: at high noise the
+/// posterior std of δ̇ is comparable to δ̇ itself and the widened band swallows the slipping
+/// samples (measured, Coulomb `sign(v)` on continuous data: 44 % excluded at 10 % noise on
+/// the 50-element model where 0.8 % are truly stuck; all samples at 100 % noise, where the
+/// pass failed). The residual-force fit only starts the output-error refinement, which
+/// simulates the friction law exactly and needs no band.
+pub const MAX_STUCK_FRACTION: f64 = 0.5;
 
 /// Largest accepted ratio of the estimator's posterior std of a connection deformation δ to
 /// the RMS of its estimate. Above it the measurements do not pin δ down and a fit of force
@@ -1560,12 +1646,23 @@ pub const MAX_DEFORMATION_UNCERTAINTY: f64 = 1.0;
 
 /// Refuse a pass whose joint deformations the measurements do not determine (see
 /// [`MAX_DEFORMATION_UNCERTAINTY`]); the figures go into the pass diagnostics either way.
+///
+/// A `provisional` pass (the first of several) only warns: it runs with the setup's initial
+/// parameters, typically no joint stiffness, so the filter's model of the joint is softer
+/// than the structure's and its posterior std of δ larger. The next pass, with the fitted
+/// parameters, is checked and refused (see [`identify`]). Measured (Coulomb `sign(v)` +
+/// spring, continuous data, 100 % noise, 2,000 samples, seed 1): ratio 1.23 in pass 1,
+/// 0.91 in pass 2, 0.75 from pass 4 on; refusing pass 1 had refused 3 of 4 seeds, which the
+/// output-error stage identifies within 2.4 % and inside their stated intervals.
+#[allow(clippy::too_many_arguments)]
 fn deformation_determined(
     setup: &Setup,
     diagnostics: &crate::estimate::EstimatorDiagnostics,
     delta_rms: &[f64],
     pass: usize,
+    provisional: bool,
     tuning: &mut Vec<(String, f64)>,
+    warnings: &mut Vec<String>,
 ) -> Result<(), IdentifyError> {
     for (c, conn) in setup.connections.iter().enumerate() {
         let Some(std) = diagnostics.tuning_value(&format!("posterior_delta_std_m[{c}]")) else {
@@ -1575,7 +1672,12 @@ fn deformation_determined(
         let ratio = std / rms.max(f64::MIN_POSITIVE);
         tuning.push((format!("delta_rms_m[{c}]"), rms));
         tuning.push((format!("delta_uncertainty_ratio[{c}]"), ratio));
-        if ratio > MAX_DEFORMATION_UNCERTAINTY {
+        if ratio > MAX_DEFORMATION_UNCERTAINTY && provisional {
+            warnings.push(format!(
+                "connection `{}`: in pass {pass}, run with the setup's initial parameters, the posterior std of the joint deformation ({std:.3e} m) is {ratio:.2}× the RMS of its estimate (limit {MAX_DEFORMATION_UNCERTAINTY}); the identification is refused if the next pass, run with the fitted parameters, exceeds it too",
+                conn.name
+            ));
+        } else if ratio > MAX_DEFORMATION_UNCERTAINTY {
             return Err(IdentifyError::Undetermined {
                 pass,
                 connection: conn.name.clone(),

@@ -70,24 +70,70 @@ fn noise_free_own_discretisation_is_recovered_exactly() {
 }
 
 /// Continuous-time data (64 sub-steps per sample) identified with 16 model sub-steps,
-/// 10 % noise, 2,000 samples, Coulomb friction + spring: friction within 5 %, spring
-/// within 1 %, the truth inside the stated 95 % interval, and a standard error not below
-/// the Cramér–Rao bound.
+/// 10 % noise, 2,000 samples, Coulomb friction + spring, two seeds: friction within 5 %,
+/// spring within 1 %, the truth inside the stated 95 % interval of both, and a standard
+/// error not below the Cramér–Rao bound. Seed 4 ended +7.4 % with a 0.10 % stated error
+/// before the output-error Jacobian of friction laws became a secant over ±1 standard error
+/// (measured now: seed 2 +0.003 % (se 0.72 %), seed 4 +0.32 % (se 0.44 %)).
 #[test]
 fn continuous_data_coulomb_friction_and_spring() {
     let s = two_beam(&["sign(v)", "u"], &[3000.0, 3.0e5], 16);
-    let id = run(&s, 2000, 64, Noise::Additive(0.1), 2);
-    let (fr, k) = (rel(&id, 0), rel(&id, 1));
-    eprintln!("friction {:.3} %, spring {:.3} %", 100.0 * fr, 100.0 * k);
+    for seed in [2, 4] {
+        let id = run(&s, 2000, 64, Noise::Additive(0.1), seed);
+        let (fr, k) = (rel(&id, 0), rel(&id, 1));
+        eprintln!(
+            "seed {seed}: friction {:.3} %, spring {:.3} %",
+            100.0 * fr,
+            100.0 * k
+        );
+        assert!(fr.abs() < 0.05, "seed {seed}: friction {fr}");
+        assert!(k.abs() < 0.01, "seed {seed}: spring {k}");
+        for p in id.final_parameters().unwrap() {
+            let b = p.crlb.expect("bound reported");
+            let t = p.truth.unwrap();
+            assert!(
+                p.std_error >= 0.95 * b,
+                "seed {seed}: {} se {} < bound {b}",
+                p.basis,
+                p.std_error
+            );
+            assert!(
+                p.ci95[0] <= t && t <= p.ci95[1],
+                "seed {seed}: {} truth {t} outside the stated interval {:?}",
+                p.basis,
+                p.ci95
+            );
+        }
+    }
+}
+
+/// The same at 100 % noise (seed 1): the first pass, run with zero joint stiffness, used to
+/// be refused as an undetermined deformation (posterior std 1.23× the RMS of δ̂; 0.75–0.91
+/// in the later passes) and the widened stuck band held every sample; now the first pass
+/// only warns, the fit falls back to the band not widened, and the output-error stage ends
+/// within 5 % (measured +1.4 %, se 5.7 %) with the truth inside the stated interval.
+#[test]
+fn continuous_data_coulomb_friction_at_full_noise() {
+    let s = two_beam(&["sign(v)", "u"], &[3000.0, 3.0e5], 16);
+    let id = run(&s, 2000, 64, Noise::Additive(1.0), 1);
+    let fr = rel(&id, 0);
+    eprintln!("friction {:.3} %", 100.0 * fr);
     assert!(fr.abs() < 0.05, "friction {fr}");
-    assert!(k.abs() < 0.01, "spring {k}");
+    let warned = |needle: &str| {
+        id.passes
+            .iter()
+            .flat_map(|p| &p.diagnostics.warnings)
+            .any(|w| w.contains(needle))
+    };
+    assert!(warned("run with the setup's initial parameters"));
+    assert!(warned("fitted with the band not widened"));
     for p in id.final_parameters().unwrap() {
-        let b = p.crlb.expect("bound reported");
+        let t = p.truth.unwrap();
         assert!(
-            p.std_error >= 0.95 * b,
-            "{} se {} < bound {b}",
+            p.ci95[0] <= t && t <= p.ci95[1],
+            "{} truth {t} outside {:?}",
             p.basis,
-            p.std_error
+            p.ci95
         );
     }
 }
