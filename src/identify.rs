@@ -1429,8 +1429,9 @@ fn raise_substeps(
     // decides (measured: 64-sub-step data at the cap of 64 showed no drop; without this check
     // a 4 % move from a 32-level wrong minimum was stated as the error of a right answer).
     let more = sub * 2;
-    if !settled && (linear || data.len() * more <= 2 * MAX_RAISED_STEPS) {
-        if let Ok((_, c2)) = residuals(
+    if !settled
+        && (linear || data.len() * more <= 2 * MAX_RAISED_STEPS)
+        && let Ok((_, c2)) = residuals(
             setup,
             model,
             &r.values,
@@ -1438,9 +1439,9 @@ fn raise_substeps(
             &data.response,
             sigma,
             more,
-        ) {
-            settled = r.report.cost_end - c2 / nobs <= significant;
-        }
+        )
+    {
+        settled = r.report.cost_end - c2 / nobs <= significant;
     }
     if let (false, Some(prev)) = (settled, coarser) {
         let keys = setup.param_keys();
