@@ -572,15 +572,14 @@ pub fn refine_global(
     // scan point descended to the plain result's −3.4 %, the scan point near the truth was
     // fourth and never tried), up to six descents.
     let mut distinct = 0;
-    let mut descents = 0;
     for &i in local
         .iter()
         .filter(|&&i| (grid[i].0[j] - plain.values[j]).abs() > same_basin)
+        .take(6)
     {
-        if distinct == 3 || descents == 6 {
+        if distinct == 3 {
             break;
         }
-        descents += 1;
         let mut p = grid[i].0.clone();
         let mut w = len;
         let mut last;
