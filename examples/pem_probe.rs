@@ -31,6 +31,20 @@ fn main() -> anyhow::Result<()> {
     let start: Vec<f64> = r.final_parameters().unwrap().iter().map(|p| p.value).collect();
     let se: Vec<f64> = r.final_parameters().unwrap().iter().map(|p| p.std_error).collect();
     eprintln!("start {:?} se {:?}", start, se);
+    if args.get(5).map(|s| s.as_str()) == Some("ml") {
+        for at in [start.clone(), truth.clone()] {
+            let mut line = String::new();
+            for &fs in &fstds {
+                let pred = predictor(&setup, &model, &at, &sigma, sub, fs)?;
+                let c = innovations(&setup, &model, &at, &pred, &data.excitation, &data.response, sub)?.1;
+                let logdet: f64 = -2.0 * pred.whiten.diagonal().iter().map(|x| x.abs().ln()).sum::<f64>();
+                let ll = -0.5 * (c + n as f64 * logdet);
+                line += &format!(" {fs}:{ll:.1}");
+            }
+            eprintln!("loglik{line}");
+        }
+        return Ok(());
+    }
     if args.get(5).map(|s| s.as_str()) == Some("refine") {
         for &fs in &fstds {
             let mut v = start.clone();
@@ -44,6 +58,16 @@ fn main() -> anyhow::Result<()> {
                     r.report.cost_start, r.report.cost_end, r.report.iterations, r.report.hac_lag, r.report.spectral_radius, t0.elapsed().as_secs_f64());
                 v = r.values.clone();
                 sc = r.std_errors.clone();
+                let pred = predictor(&setup, &model, &v, &sigma, sub, fs)?;
+                let ce = innovations(&setup, &model, &v, &pred, &data.excitation, &data.response, sub)?.1;
+                let ct = innovations(&setup, &model, &truth, &pred, &data.excitation, &data.response, sub)?.1;
+                let mut line = String::new();
+                for k in 0..=10 {
+                    let t = k as f64 / 10.0;
+                    let p: Vec<f64> = v.iter().zip(&truth).map(|(a, b)| a + t * (b - a)).collect();
+                    line += &format!(" {:.1}", innovations(&setup, &model, &p, &pred, &data.excitation, &data.response, sub)?.1 - ce);
+                }
+                eprintln!("   cost at estimate {ce:.2}, at truth {ct:.2}; line estimate→truth:{line}");
             }
         }
         return Ok(());

@@ -178,6 +178,18 @@ pub fn innovations(
 /// free run).
 const SECANT: f64 = 0.5;
 
+/// Secant Gauss–Newton iterations after the Levenberg–Marquardt descent, without its
+/// "the cost must go down" test: the innovation cost is still rough at a fraction of a
+/// standard error (each zero crossing of δ that moves across a sub-step boundary is a small
+/// jump), so a descent that only accepts lower costs stops wherever such a jump blocks it —
+/// measured 10 % noise, seeds 1–4, a process-noise force of ~1,000 N: the end point moved by
+/// up to ~1 standard error with a 0.03 % change of that force. The Gauss–Newton step on the
+/// secant (±½ error) Jacobian goes to the zero of the *smoothed* gradient instead. Steps are
+/// clipped to `POLISH_TRUST` naive errors; it stops below `POLISH_TOL` of them.
+const POLISH_ITER: usize = 8;
+const POLISH_TRUST: f64 = 2.0;
+const POLISH_TOL: f64 = 0.05;
+
 /// What the prediction-error refinement did (reported in the identification's
 /// output-error report).
 #[derive(Debug, Clone, serde::Serialize)]
@@ -447,9 +459,43 @@ pub fn refine(
             break;
         }
     }
-    let Some((J, pred)) = last else {
+    let Some((mut J, pred)) = last else {
         return Err(SimulateError::Singular);
     };
+    // Secant Gauss–Newton to the zero of the smoothed gradient (see `POLISH_ITER`).
+    let mut polished = 0;
+    for _ in 0..POLISH_ITER {
+        let (F, g) = normal(&J);
+        let Some(inv) = scaled_inverse(&F) else { break };
+        let naive: Vec<f64> = (0..p.len()).map(|a| inv[(a, a)].max(0.0).sqrt()).collect();
+        let dp = &inv * &g;
+        // Clip the step to POLISH_TRUST naive errors (the secant is only a local model).
+        let worst = dp
+            .iter()
+            .zip(&naive)
+            .map(|(d, b)| d.abs() / b)
+            .fold(0.0, f64::max);
+        if !worst.is_finite() || worst <= POLISH_TOL {
+            break;
+        }
+        let shrink = (POLISH_TRUST / worst).min(1.0);
+        let trial = feasible(
+            &basis,
+            &p.iter()
+                .zip(dp.iter())
+                .map(|(a, b)| a + shrink * b)
+                .collect::<Vec<_>>(),
+        );
+        let Ok(J2) = jacobian(
+            setup, model, &basis, &trial, &naive, &pred, excitation, response, substeps,
+        ) else {
+            break;
+        };
+        p = trial;
+        J = J2;
+        polished += 1;
+    }
+    iterations += polished;
     let (se, naive, lag) = sandwich(&J, m).ok_or(SimulateError::Singular)?;
     Ok(PemRefined {
         report: PredictionErrorReport {
