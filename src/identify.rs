@@ -1441,7 +1441,13 @@ fn tune_pem_force(
         ) else {
             return f64::NEG_INFINITY;
         };
-        let log_det: f64 = -2.0 * pred.whiten.diagonal().iter().map(|x| x.abs().ln()).sum::<f64>();
+        let log_det: f64 = -2.0
+            * pred
+                .whiten
+                .diagonal()
+                .iter()
+                .map(|x| x.abs().ln())
+                .sum::<f64>();
         -0.5 * (c + n * log_det)
     };
     let (force, ll, _) = crate::estimate::tuning::maximise_log(
@@ -1482,10 +1488,8 @@ fn refine_by_prediction_error(
     sigma: &[f64],
     start: &[f64],
     scales: &[f64],
-) -> Result<
-    (crate::estimate::prediction_error::PemRefined, usize),
-    crate::simulate::SimulateError,
-> {
+) -> Result<(crate::estimate::prediction_error::PemRefined, usize), crate::simulate::SimulateError>
+{
     use crate::estimate::prediction_error::refine;
     let keys: Vec<Basis> = setup
         .connections

@@ -181,7 +181,10 @@ fn continuous_data_sign_u_friction_by_prediction_error() {
         );
     }
     let oe = id.output_error.as_ref().expect("refinement report");
-    let pe = oe.prediction_error.as_ref().expect("prediction-error report");
+    let pe = oe
+        .prediction_error
+        .as_ref()
+        .expect("prediction-error report");
     assert!(pe.force_std > 0.0 && pe.substeps == 64, "{pe:?}");
     assert!(
         id.notes.iter().any(|n| n.contains("process-noise force")),

@@ -113,10 +113,7 @@ pub fn predictor(
     let S = (&S + S.transpose()) * 0.5;
     let chol = S.cholesky().ok_or(SimulateError::Singular)?;
     let sinv = chol.inverse();
-    let linv = chol
-        .l()
-        .try_inverse()
-        .ok_or(SimulateError::Singular)?;
+    let linv = chol.l().try_inverse().ok_or(SimulateError::Singular)?;
     let gain = &P * H.transpose() * &sinv;
     let closed = (DMatrix::identity(3 * n, 3 * n) - &gain * &H) * &phi;
     let spectral_radius = spectral_radius_by_powers(&closed);
@@ -270,7 +267,9 @@ fn normal(j: &Jac) -> (DMatrix<f64>, DVector<f64>) {
     let F = DMatrix::from_fn(p, p, |a, b| {
         j.cols[a].iter().zip(&j.cols[b]).map(|(x, y)| x * y).sum()
     });
-    let g = DVector::from_fn(p, |a, _| j.cols[a].iter().zip(&j.r).map(|(x, y)| x * y).sum());
+    let g = DVector::from_fn(p, |a, _| {
+        j.cols[a].iter().zip(&j.r).map(|(x, y)| x * y).sum()
+    });
     (F, g)
 }
 
@@ -422,7 +421,10 @@ pub fn refine(
                 let dp = &inv * &g;
                 let trial = feasible(
                     &basis,
-                    &p.iter().zip(dp.iter()).map(|(a, b)| a + b).collect::<Vec<_>>(),
+                    &p.iter()
+                        .zip(dp.iter())
+                        .map(|(a, b)| a + b)
+                        .collect::<Vec<_>>(),
                 );
                 let c = innovations(setup, model, &trial, &pred, excitation, response, substeps)
                     .map(|x| x.1)
