@@ -1511,7 +1511,8 @@ fn refine_by_prediction_error(
     let (mut force_std, mut ll) = tune_pem_force(setup, model, data, sigma, start, sub);
     while sub * 2 <= 8 * opts.substeps && data.len() * sub * 2 <= MAX_PEM_STEPS {
         let (f2, ll2) = tune_pem_force(setup, model, data, sigma, start, sub * 2);
-        if !(ll2 - ll > significant) {
+        // A failed tuning is −∞ and stops the doubling too.
+        if ll2 - ll <= significant || !ll2.is_finite() {
             break;
         }
         sub *= 2;
@@ -1634,8 +1635,9 @@ fn raise_substeps(
     // decides (measured: 64-sub-step data at the cap of 64 showed no drop; without this check
     // a 4 % move from a 32-level wrong minimum was stated as the error of a right answer).
     let more = sub * 2;
-    if !settled && (linear || data.len() * more <= 2 * MAX_RAISED_STEPS) {
-        if let Ok((_, c2)) = residuals(
+    if !settled
+        && (linear || data.len() * more <= 2 * MAX_RAISED_STEPS)
+        && let Ok((_, c2)) = residuals(
             setup,
             model,
             &r.values,
@@ -1643,9 +1645,9 @@ fn raise_substeps(
             &data.response,
             sigma,
             more,
-        ) {
-            settled = r.report.cost_end - c2 / nobs <= significant;
-        }
+        )
+    {
+        settled = r.report.cost_end - c2 / nobs <= significant;
     }
     if let (false, Some(prev)) = (settled, coarser) {
         let keys = setup.param_keys();

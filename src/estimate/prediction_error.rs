@@ -319,9 +319,9 @@ fn sandwich(j: &Jac, m: usize) -> Option<(Vec<f64>, Vec<f64>, usize)> {
     let mut rho: f64 = 0.0;
     for a in 0..p {
         let (mut num, mut den) = (0.0, 0.0);
-        for i in 1..n {
-            num += s[i][a] * s[i - 1][a];
-            den += s[i - 1][a] * s[i - 1][a];
+        for w in s.windows(2) {
+            num += w[1][a] * w[0][a];
+            den += w[0][a] * w[0][a];
         }
         if den > 0.0 {
             let r = (num / den).clamp(-0.99, 0.99);
