@@ -161,8 +161,8 @@ fn passes_converge_on_the_shipped_friction_case() {
 /// refinement ended at −9.9 % friction with a 0.11 % stated error (its cost is rough: the
 /// law is chaotic, and the descent stopped in a local minimum 89 se from the truth). The
 /// prediction-error refinement (observer-corrected innovations, `estimate::prediction_error`)
-/// ends within 5 % with the truth inside its stated 95 % intervals (measured +0.52 %,
-/// se 2.1 %; spring −0.014 %, se 0.076 %) and reports its observer tuning.
+/// ends within 5 % with the truth inside its stated 95 % intervals (measured +1.0 %,
+/// se 2.0 %; spring −0.030 %, se 0.074 %; 21 s alone) and reports its observer tuning.
 #[test]
 fn continuous_data_sign_u_friction_by_prediction_error() {
     let s = two_beam(&["sign(u)", "u"], &[3000.0, 3.0e5], 16);
