@@ -559,6 +559,126 @@ fn response_implicit(
     Ok(out)
 }
 
+/// One-step-ahead predictions `ŷ_{i|i−1}` of the model with the connection law `params`
+/// driven by the recorded excitation from rest, its state `x = (u; u̇; ü)` corrected after
+/// every sample by a fixed observer gain: `x ← x + K (y_i − ŷ_{i|i−1})` (`gain` is `3n × m`,
+/// rows in `(u; u̇; ü)` order, columns the station channels). With `K = 0` this is
+/// [`response_to_excitation`] (implicit path).
+///
+/// Why: the prediction-error predictor of [`crate::estimate::prediction_error`]. A joint
+/// that is stuck stays stuck through a correction: the correction's component along a stuck
+/// connection's `Lc` column is removed (a stuck `sign(u)` joint holds δ = 0, a stuck
+/// `sign(v)` joint δ̇ = 0; a correction would otherwise move it off the constraint and the
+/// next sub-step would pull it back with an impulsive force).
+#[allow(clippy::too_many_arguments)]
+pub fn predictions_with_observer(
+    setup: &Setup,
+    model: &Model,
+    params: &[f64],
+    excitation: &[Vec<f64>],
+    response: &[Vec<f64>],
+    dt_s: f64,
+    substeps: usize,
+    gain: &DMatrix<f64>,
+) -> Result<Vec<Vec<f64>>, SimulateError> {
+    let n = model.n();
+    let m = model.stations.len();
+    if substeps == 0 || excitation.is_empty() || response.len() < excitation.len() {
+        return Err(SimulateError::Options(
+            "substeps and the excitation length must be at least 1, and a response per sample"
+                .into(),
+        ));
+    }
+    if gain.nrows() != 3 * n || gain.ncols() != m {
+        return Err(SimulateError::Options(format!(
+            "observer gain is {}×{}, expected {}×{m}",
+            gain.nrows(),
+            gain.ncols(),
+            3 * n
+        )));
+    }
+    let h = dt_s / substeps as f64;
+    let mut sys = TruthSystem::with_params(setup, model, h, params)?;
+    let ne = model.Lp.ncols();
+    let mut s = State::zeros(n);
+    let f0 = sys.rest_force();
+    let p0 = DVector::from_iterator(
+        ne,
+        (0..ne).map(|j| excitation[0].get(j).copied().unwrap_or(0.0)),
+    );
+    let rhs = &model.Lp * &p0 - &model.Lc * &f0;
+    s.a = model
+        .M
+        .clone()
+        .lu()
+        .solve(&rhs)
+        .ok_or(SimulateError::Singular)?;
+    let record = |s: &State| -> Vec<f64> {
+        model
+            .stations
+            .iter()
+            .map(|st| s.channel(st.dof, st.quantity))
+            .collect()
+    };
+    // Unit connection directions, for removing a correction along a stuck joint.
+    let dirs: Vec<DVector<f64>> = (0..model.Lc.ncols())
+        .map(|c| {
+            let l = model.Lc.column(c).into_owned();
+            let nrm = l.norm();
+            if nrm > 0.0 { l / nrm } else { l }
+        })
+        .collect();
+    let mut innov = DVector::zeros(m);
+    let mut dx = DVector::zeros(3 * n);
+    let mut correct = |s: &mut State, sys: &TruthSystem, y: &[f64], yhat: &[f64]| {
+        for k in 0..m {
+            innov[k] = y.get(k).copied().unwrap_or(0.0) - yhat[k];
+        }
+        dx.gemv(1.0, gain, &innov, 0.0);
+        let mut du = dx.rows(0, n).into_owned();
+        let mut dv = dx.rows(n, n).into_owned();
+        let mut da = dx.rows(2 * n, n).into_owned();
+        for (c, st) in sys.status.iter().enumerate() {
+            if *st == Status::Stick {
+                let l = &dirs[c];
+                for d in [&mut du, &mut dv, &mut da] {
+                    let along = l.dot(d);
+                    d.axpy(-along, l, 1.0);
+                }
+            }
+        }
+        s.u += du;
+        s.v += dv;
+        s.a += da;
+    };
+    let mut out = Vec::with_capacity(excitation.len());
+    let y0 = record(&s);
+    correct(&mut s, &sys, &response[0], &y0);
+    out.push(y0);
+    let mut pt = DVector::zeros(ne);
+    for i in 1..excitation.len() {
+        let (a, b) = (&excitation[i - 1], &excitation[i]);
+        for k in 1..=substeps {
+            let t = k as f64 / substeps as f64;
+            for j in 0..ne {
+                let (x0, x1) = (
+                    a.get(j).copied().unwrap_or(0.0),
+                    b.get(j).copied().unwrap_or(0.0),
+                );
+                pt[j] = x0 + t * (x1 - x0);
+            }
+            sys.substep(&mut s, &pt).ok_or(SimulateError::Diverged(i))?;
+        }
+        if !s.is_finite() {
+            return Err(SimulateError::Diverged(i));
+        }
+        let yi = record(&s);
+        correct(&mut s, &sys, &response[i], &yi);
+        out.push(yi);
+    }
+    Ok(out)
+}
+
 /// Whether every connection law of the setup is linear in the state (only `u`, `v` and
 /// `const(c)` terms): then [`response_to_excitation`] runs one composed map per sample, and
 /// its cost does not depend on the number of sub-steps.

@@ -15,6 +15,7 @@
 pub mod kalman;
 pub mod output_error;
 pub mod paper;
+pub mod prediction_error;
 pub mod refit;
 pub mod tuning;
 

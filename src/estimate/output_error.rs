@@ -63,6 +63,10 @@ pub struct OutputErrorReport {
     /// The stiffness scan for other minima, when run (see [`refine_global`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub scan: Option<ScanReport>,
+    /// Set when the refinement was the prediction-error one (laws with a `sign(u)` term,
+    /// see [`super::prediction_error`]): its observer tuning and sandwich errors.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub prediction_error: Option<super::prediction_error::PredictionErrorReport>,
 }
 
 fn is_sign(b: &Basis) -> bool {
@@ -410,6 +414,7 @@ pub fn refine(
             },
             scan: None,
             rough: false,
+            prediction_error: None,
         },
     })
 }
