@@ -951,7 +951,8 @@ enum Refitted {
         is_final: bool,
     },
     Final {
-        identification: Option<Identification>,
+        /// Boxed: the identification is large and this message is sent once.
+        identification: Option<Box<Identification>>,
         samples: usize,
         setup: Box<Setup>,
     },
@@ -1092,7 +1093,7 @@ fn refitter_stage(
         None => (None, 0, Box::new(setup.clone())),
     };
     let _ = send(Msg::Data(Refitted::Final {
-        identification,
+        identification: identification.map(Box::new),
         samples,
         setup: setup_used,
     }));
@@ -1590,7 +1591,7 @@ pub fn run(
                         let (s, t) = (sink.report.last_sample.unwrap_or(0), unix_ns());
                         sink.parameters(s, t, params, true, "batch");
                     }
-                    sink.report.final_identification = identification;
+                    sink.report.final_identification = identification.map(|b| *b);
                     sink.report.final_samples = samples;
                     sink.dt_s = setup.dt_s;
                     final_setup = Some(setup);
