@@ -583,15 +583,27 @@ fn grid_candidates(
 /// the RMS of δ̂ in pass 2), or no sample left for the fit outside the stuck band. Neither
 /// says anything about the output-error cost, which has no residual force and so no
 /// unobserved deformation.
-fn scan_fallback_applies(e: &IdentifyError) -> bool {
-    matches!(
-        e,
-        IdentifyError::Undetermined { .. }
-            | IdentifyError::Refit {
-                source: RefitError::TooFewRows { .. },
-                ..
-            }
-    )
+///
+/// Only for laws with a friction (`sign`) term: for a spring alone the fallback was
+/// measured and is not honest enough (mixed layout, `u`, 50 % noise, 2,000 samples: seed 1
+/// −0.45 % with a 0.14 % stated error, 128 model sub-steps chosen on the prefix; seed 2
+/// −0.055 %, se 0.064 %), so those refusals stand (test
+/// `mixed_layout_at_high_noise_is_refused_as_undetermined`).
+fn scan_fallback_applies(setup: &Setup, e: &IdentifyError) -> bool {
+    let friction = setup.connections.iter().any(|c| {
+        c.basis
+            .iter()
+            .any(|b| matches!(b, Basis::SignU | Basis::SignV))
+    });
+    friction
+        && matches!(
+            e,
+            IdentifyError::Undetermined { .. }
+                | IdentifyError::Refit {
+                    source: RefitError::TooFewRows { .. },
+                    ..
+                }
+        )
 }
 
 /// Largest move, in the final stated standard errors, that the probe of
@@ -1633,7 +1645,7 @@ pub fn identify(
                 if result.passes.is_empty() || deferred {
                     if by_output_error
                         && opts.estimator == EstimatorKind::Kalman
-                        && scan_fallback_applies(&e)
+                        && scan_fallback_applies(setup, &e)
                     {
                         return identify_from_scan(
                             setup,
