@@ -365,11 +365,11 @@ const FRICTION_SCAN_RANGE: [f64; 2] = [1e-3, 1.0];
 /// scan of each friction level at that stiffness, and the stiffness scan again at the
 /// friction found. Returns the start and its normalised cost `Σ((y − ŷ)/σ)²/(N·m)`.
 ///
-/// Why the friction scan: started with the friction at 0, the stiffness scan absorbs the
-/// missing friction into the spring; measured (accelerations only, Coulomb `sign(v)` 3000 N
-/// + spring 3e5 N/m, 10 % noise, 2,000 samples, seed 1) the scan then started at +53 %
-/// and the refinement ended at spring **+34 % with a 0.08 % stated error** (friction
-/// −1.6 %), the probe still finding lower costs along the valley towards the truth.
+/// Why the friction scan: with the friction held at 0 the stiffness profile carries no
+/// information about the joint. Measured (accelerations only, Coulomb `sign(v)` at 3000 N
+/// with a spring of 3e5 N/m, 10 % noise, 2,000 samples): seed 1 ended at spring **+34 %
+/// with a 0.08 % stated error** (friction −1.6 %; three probe restarts were still finding
+/// lower costs), seed 2 at spring −104 % with 0.01 % (friction +46 %).
 #[allow(clippy::too_many_arguments)]
 fn scan_start(
     setup: &Setup,
@@ -1062,18 +1062,18 @@ fn identify_from_scan(
     else {
         return Err(refuse());
     };
-    if let Some((parameter, moved)) = probe_move(setup, &result) {
-        if moved > MAX_SCAN_PROBE_MOVE {
-            return Err(IdentifyError::ScanUnsettled {
-                context: if accel {
-                    "accelerations only".into()
-                } else {
-                    format!("after the residual-force stage was refused ({refused_note})")
-                },
-                parameter,
-                moved,
-            });
-        }
+    if let Some((parameter, moved)) = probe_move(setup, &result)
+        && moved > MAX_SCAN_PROBE_MOVE
+    {
+        return Err(IdentifyError::ScanUnsettled {
+            context: if accel {
+                "accelerations only".into()
+            } else {
+                format!("after the residual-force stage was refused ({refused_note})")
+            },
+            parameter,
+            moved,
+        });
     }
     if !accel {
         result.notes.push(format!(
@@ -2030,8 +2030,9 @@ fn raise_substeps(
     // decides (measured: 64-sub-step data at the cap of 64 showed no drop; without this check
     // a 4 % move from a 32-level wrong minimum was stated as the error of a right answer).
     let more = sub * 2;
-    if !settled && (linear || data.len() * more <= 2 * MAX_RAISED_STEPS) {
-        if let Ok((_, c2)) = residuals(
+    if !settled
+        && (linear || data.len() * more <= 2 * MAX_RAISED_STEPS)
+        && let Ok((_, c2)) = residuals(
             setup,
             model,
             &r.values,
@@ -2039,9 +2040,9 @@ fn raise_substeps(
             &data.response,
             sigma,
             more,
-        ) {
-            settled = r.report.cost_end - c2 / nobs <= significant;
-        }
+        )
+    {
+        settled = r.report.cost_end - c2 / nobs <= significant;
     }
     if let (false, Some(prev)) = (settled, coarser) {
         let keys = setup.param_keys();
