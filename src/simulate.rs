@@ -502,6 +502,42 @@ pub fn response_to_excitation(
     response_implicit(setup, model, params, excitation, dt_s, substeps)
 }
 
+/// The station outputs (each station's quantity at its DOF) of a state.
+fn station_outputs(model: &Model, s: &State) -> Vec<f64> {
+    model
+        .stations
+        .iter()
+        .map(|st| s.channel(st.dof, st.quantity))
+        .collect()
+}
+
+/// Acceleration at rest under the first sample's excitation `p0` and the connections' rest
+/// force `f0` (constant terms only): `M a = Lp p0 − Lc f0`.
+fn rest_acceleration(
+    model: &Model,
+    p0: &DVector<f64>,
+    f0: &DVector<f64>,
+) -> Result<DVector<f64>, SimulateError> {
+    let rhs = &model.Lp * p0 - &model.Lc * f0;
+    model
+        .M
+        .clone()
+        .lu()
+        .solve(&rhs)
+        .ok_or(SimulateError::Singular)
+}
+
+/// The state a prediction starts from: at rest, accelerated by the first sample's excitation
+/// (missing channels read as 0) and the rest force of the law in `sys`.
+fn rest_state(model: &Model, sys: &TruthSystem, first: &[f64]) -> Result<State, SimulateError> {
+    let ne = model.Lp.ncols();
+    let mut s = State::zeros(model.n());
+    let f0 = sys.rest_force();
+    let p0 = DVector::from_iterator(ne, (0..ne).map(|j| first.get(j).copied().unwrap_or(0.0)));
+    s.a = rest_acceleration(model, &p0, &f0)?;
+    Ok(s)
+}
+
 /// [`response_to_excitation`] sub-step by sub-step with the implicit force solve (any law).
 fn response_implicit(
     setup: &Setup,
@@ -513,28 +549,9 @@ fn response_implicit(
 ) -> Result<Vec<Vec<f64>>, SimulateError> {
     let h = dt_s / substeps as f64;
     let mut sys = TruthSystem::with_params(setup, model, h, params)?;
-    let n = model.n();
     let ne = model.Lp.ncols();
-    let mut s = State::zeros(n);
-    let f0 = sys.rest_force();
-    let p0 = DVector::from_iterator(
-        ne,
-        (0..ne).map(|j| excitation[0].get(j).copied().unwrap_or(0.0)),
-    );
-    let rhs = &model.Lp * &p0 - &model.Lc * &f0;
-    s.a = model
-        .M
-        .clone()
-        .lu()
-        .solve(&rhs)
-        .ok_or(SimulateError::Singular)?;
-    let record = |s: &State| -> Vec<f64> {
-        model
-            .stations
-            .iter()
-            .map(|st| s.channel(st.dof, st.quantity))
-            .collect()
-    };
+    let mut s = rest_state(model, &sys, &excitation[0])?;
+    let record = |s: &State| station_outputs(model, s);
     let mut out = Vec::with_capacity(excitation.len());
     out.push(record(&s));
     let mut pt = DVector::zeros(ne);
@@ -600,26 +617,8 @@ pub fn predictions_with_observer(
     let h = dt_s / substeps as f64;
     let mut sys = TruthSystem::with_params(setup, model, h, params)?;
     let ne = model.Lp.ncols();
-    let mut s = State::zeros(n);
-    let f0 = sys.rest_force();
-    let p0 = DVector::from_iterator(
-        ne,
-        (0..ne).map(|j| excitation[0].get(j).copied().unwrap_or(0.0)),
-    );
-    let rhs = &model.Lp * &p0 - &model.Lc * &f0;
-    s.a = model
-        .M
-        .clone()
-        .lu()
-        .solve(&rhs)
-        .ok_or(SimulateError::Singular)?;
-    let record = |s: &State| -> Vec<f64> {
-        model
-            .stations
-            .iter()
-            .map(|st| s.channel(st.dof, st.quantity))
-            .collect()
-    };
+    let mut s = rest_state(model, &sys, &excitation[0])?;
+    let record = |s: &State| station_outputs(model, s);
     // Unit connection directions, for removing a correction along a stuck joint.
     let dirs: Vec<DVector<f64>> = (0..model.Lc.ncols())
         .map(|c| {
@@ -914,21 +913,9 @@ pub fn simulate(setup: &Setup, opts: &SimulateOptions) -> Result<Simulated, Simu
     // equilibrium (a stuck joint carries no force).
     let q = model.Lc.ncols();
     let f0 = sys.rest_force();
-    let rhs = &model.Lp * &p0 - &model.Lc * &f0;
-    s.a = model
-        .M
-        .clone()
-        .lu()
-        .solve(&rhs)
-        .ok_or(SimulateError::Singular)?;
+    s.a = rest_acceleration(&model, &p0, &f0)?;
     let lct = model.Lc.transpose();
-    let record = |s: &State| -> Vec<f64> {
-        model
-            .stations
-            .iter()
-            .map(|st| s.channel(st.dof, st.quantity))
-            .collect()
-    };
+    let record = |s: &State| station_outputs(&model, s);
     let mut excitation = vec![p0.iter().copied().collect::<Vec<_>>()];
     let mut clean = vec![record(&s)];
     let mut force = vec![f0.iter().copied().collect::<Vec<_>>()];

@@ -232,7 +232,9 @@ pub fn crlb_from_fisher(F: &DMatrix<f64>) -> Option<Vec<f64>> {
     )
 }
 
-fn scaled_inverse(F: &DMatrix<f64>) -> Option<DMatrix<f64>> {
+/// `F⁻¹` with column scaling (by `diag(F)^{-1/2}`, so parameters of very different units
+/// invert well); `None` when `F` is singular or the inverse is not finite.
+pub(crate) fn scaled_inverse(F: &DMatrix<f64>) -> Option<DMatrix<f64>> {
     let p = F.nrows();
     let d: Vec<f64> = (0..p)
         .map(|j| {

@@ -29,6 +29,7 @@
 use nalgebra::{DMatrix, DVector};
 
 use super::kalman::{force_scale_of, solve_filter_dare, spectral_radius_by_powers};
+use super::output_error::scaled_inverse;
 use crate::integrate::Stepper;
 use crate::model::Model;
 use crate::setup::{Basis, Setup};
@@ -271,24 +272,6 @@ fn normal(j: &Jac) -> (DMatrix<f64>, DVector<f64>) {
         j.cols[a].iter().zip(&j.r).map(|(x, y)| x * y).sum()
     });
     (F, g)
-}
-
-/// Inverse with column scaling; `None` when singular.
-fn scaled_inverse(F: &DMatrix<f64>) -> Option<DMatrix<f64>> {
-    let p = F.nrows();
-    let d: Vec<f64> = (0..p)
-        .map(|j| {
-            let x = F[(j, j)];
-            if x > 0.0 { 1.0 / x.sqrt() } else { 0.0 }
-        })
-        .collect();
-    if d.contains(&0.0) {
-        return None;
-    }
-    let Fs = DMatrix::from_fn(p, p, |a, b| F[(a, b)] * d[a] * d[b]);
-    let inv = Fs.cholesky()?.inverse();
-    let out = DMatrix::from_fn(p, p, |a, b| inv[(a, b)] * d[a] * d[b]);
-    out.iter().all(|x| x.is_finite()).then_some(out)
 }
 
 /// Sandwich `A⁻¹ B A⁻¹` with `A = JᵀJ` and `B` the Bartlett-weighted long-run covariance of
