@@ -359,6 +359,29 @@ const ACCEL_SCAN_RANGE: [f64; 2] = [1e-6, 1e-1];
 const FRICTION_SCAN_POINTS: usize = 21;
 const FRICTION_SCAN_RANGE: [f64; 2] = [1e-3, 1.0];
 
+/// Scales of the scans: the largest diagonal stiffness of the model (N/m, at least 1) and
+/// the RMS of the excitation over all channels and samples (N; 1 when it is zero or not
+/// finite). Stiffness and friction ranges are fractions of these.
+fn scan_scales(model: &Model, exc: &[Vec<f64>]) -> (f64, f64) {
+    let kmax = model.K.diagonal().amax().max(1.0);
+    let cells = exc.iter().map(|e| e.len()).sum::<usize>().max(1);
+    let frms = (exc.iter().flatten().map(|x| x * x).sum::<f64>() / cells as f64).sqrt();
+    let frms = if frms.is_finite() && frms > 0.0 {
+        frms
+    } else {
+        1.0
+    };
+    (kmax, frms)
+}
+
+/// `points` log-spaced values over `range × scale`, ends included.
+fn log_grid(range: [f64; 2], scale: f64, points: usize) -> Vec<f64> {
+    let (lo, hi) = ((range[0] * scale).ln(), (range[1] * scale).ln());
+    (0..points)
+        .map(|i| (lo + (hi - lo) * i as f64 / (points - 1).max(1) as f64).exp())
+        .collect()
+}
+
 /// The start of the output-error stage when the residual-force stage cannot give one: on
 /// the record prefix `exc`/`resp`, a log-spaced scan of each spring stiffness (the others
 /// at their current value), then — when the law has friction terms (`sign`) — a log-spaced
@@ -383,24 +406,11 @@ fn scan_start(
 ) -> (Vec<f64>, f64) {
     use crate::estimate::output_error::residuals;
     let nobs = (exc.len() * sigma.len()).max(1) as f64;
-    let kmax = model.K.diagonal().amax().max(1.0);
-    let cells = exc.iter().map(|e| e.len()).sum::<usize>().max(1);
-    let frms = (exc.iter().flatten().map(|x| x * x).sum::<f64>() / cells as f64).sqrt();
-    let frms = if frms.is_finite() && frms > 0.0 {
-        frms
-    } else {
-        1.0
-    };
+    let (kmax, frms) = scan_scales(model, exc);
     let cost_at = |p: &[f64]| {
         residuals(setup, model, p, exc, resp, sigma, substeps)
             .map(|r| r.1)
             .unwrap_or(f64::INFINITY)
-    };
-    let log_grid = |range: [f64; 2], scale: f64, points: usize| -> Vec<f64> {
-        let (lo, hi) = ((range[0] * scale).ln(), (range[1] * scale).ln());
-        (0..points)
-            .map(|i| (lo + (hi - lo) * i as f64 / (points - 1) as f64).exp())
-            .collect()
     };
     // One parameter over its grid, the others held; keeps the lowest (the current value
     // included, so a pass never makes the start worse).
@@ -483,35 +493,14 @@ fn grid_candidates(
         return Vec::new();
     };
     let nobs = (exc.len() * sigma.len()).max(1) as f64;
-    let kmax = model.K.diagonal().amax().max(1.0);
-    let cells = exc.iter().map(|e| e.len()).sum::<usize>().max(1);
-    let frms = (exc.iter().flatten().map(|x| x * x).sum::<f64>() / cells as f64).sqrt();
-    let frms = if frms.is_finite() && frms > 0.0 {
-        frms
-    } else {
-        1.0
-    };
+    let (kmax, frms) = scan_scales(model, exc);
     let cost_at = |p: &[f64]| {
         residuals(setup, model, p, exc, resp, sigma, substeps)
             .map(|r| r.1 / nobs)
             .unwrap_or(f64::INFINITY)
     };
-    let log_grid = |lo: f64, hi: f64, points: usize| -> Vec<f64> {
-        let (lo, hi) = (lo.ln(), hi.ln());
-        (0..points)
-            .map(|i| (lo + (hi - lo) * i as f64 / (points - 1) as f64).exp())
-            .collect()
-    };
-    let kg = log_grid(
-        ACCEL_SCAN_RANGE[0] * kmax,
-        ACCEL_SCAN_RANGE[1] * kmax,
-        GRID_SPRING_POINTS,
-    );
-    let fg = log_grid(
-        FRICTION_SCAN_RANGE[0] * frms,
-        FRICTION_SCAN_RANGE[1] * frms,
-        GRID_FRICTION_POINTS,
-    );
+    let kg = log_grid(ACCEL_SCAN_RANGE, kmax, GRID_SPRING_POINTS);
+    let fg = log_grid(FRICTION_SCAN_RANGE, frms, GRID_FRICTION_POINTS);
     let (nk, nf) = (kg.len(), fg.len());
     let mut c = vec![f64::INFINITY; nk * nf];
     for a in 0..nk {
