@@ -102,17 +102,6 @@ fn tune_pem_force(
 /// −8.2 % (se 5.5 %, 2,890 N) — more smoothing than needed costs precision.
 const PEM_FRICTION_FLOOR: f64 = 1.0 / 3.0;
 
-/// Prediction-error refinement for laws with a `sign(u)` term (see
-/// `estimate::prediction_error`), from the residual-force estimate. The model sub-steps are
-/// chosen first, at the start values: doubled while that raises the tuned innovation
-/// likelihood by more than 3 standard deviations (`1.5√(2Nm)`), up to 8× the setup's and
-/// [`MAX_PEM_STEPS`] per run; then one refinement at that level. Returns the result and the
-/// sub-steps used.
-///
-/// Why choose first: refining at each level in turn (tried) started the finer fits from the
-/// coarse level's biased minimum, and on the shipped case (1 model sub-step, 8-sub-step data,
-/// 1 % noise) the innovation cost with the coarse level's large observer force hardly
-/// dropped with a doubling, so it stopped at 2 sub-steps and ended at −61 % friction.
 /// Why a prediction-error result does not determine the parameters, if it does not: a
 /// friction level that ended on its bound 0 or any standard error that is zero or not
 /// finite. Measured (paper `sign(u)` + spring, 100 % noise, 20,000 samples, seed 1): the
@@ -146,6 +135,17 @@ pub(super) fn pem_undetermined(
     None
 }
 
+/// Prediction-error refinement for laws with a `sign(u)` term (see
+/// `estimate::prediction_error`), from the residual-force estimate. The model sub-steps are
+/// chosen first, at the start values: doubled while that raises the tuned innovation
+/// likelihood by more than 3 standard deviations (`1.5√(2Nm)`), up to 8× the setup's and
+/// [`MAX_PEM_STEPS`] per run; then one refinement at that level. Returns the result and the
+/// sub-steps used.
+///
+/// Why choose first: refining at each level in turn (tried) started the finer fits from the
+/// coarse level's biased minimum, and on the shipped case (1 model sub-step, 8-sub-step data,
+/// 1 % noise) the innovation cost with the coarse level's large observer force hardly
+/// dropped with a doubling, so it stopped at 2 sub-steps and ended at −61 % friction.
 pub(super) fn refine_by_prediction_error(
     setup: &Setup,
     model: &Model,
