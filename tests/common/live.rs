@@ -21,12 +21,24 @@ pub fn prefix(name: &str) -> String {
     format!("jt{}{name}_", std::process::id())
 }
 
+/// A shipped setup by file name (`recordings/NAME`).
+pub fn shipped_setup(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("recordings")
+        .join(name)
+}
+
 /// `jointid live --setup <friction> --prefix P --json EXTRA…`, output captured.
 pub fn spawn_live(prefix: &str, extra: &[&str]) -> Child {
+    spawn_live_with(&setup_path(), prefix, extra)
+}
+
+/// `jointid live --setup SETUP --prefix P --json EXTRA…`, output captured.
+pub fn spawn_live_with(setup: &Path, prefix: &str, extra: &[&str]) -> Child {
     Command::new(JOINTID)
         .arg("live")
         .arg("--setup")
-        .arg(setup_path())
+        .arg(setup)
         .args(["--prefix", prefix, "--json"])
         .args(extra)
         .stdout(Stdio::piped())
@@ -37,9 +49,14 @@ pub fn spawn_live(prefix: &str, extra: &[&str]) -> Child {
 
 /// `acquire-sim --setup <friction> --prefix P --rate 10000 EXTRA…`, output captured.
 pub fn acquire(prefix: &str, extra: &[&str]) -> Command {
+    acquire_with(&setup_path(), prefix, extra)
+}
+
+/// `acquire-sim --setup SETUP --prefix P --rate 10000 EXTRA…`, output captured.
+pub fn acquire_with(setup: &Path, prefix: &str, extra: &[&str]) -> Command {
     let mut c = Command::new(ACQUIRE);
     c.arg("--setup")
-        .arg(setup_path())
+        .arg(setup)
         .args(["--prefix", prefix, "--rate", "10000"])
         .args(extra)
         .stdout(Stdio::piped())
