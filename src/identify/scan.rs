@@ -44,6 +44,16 @@ pub(super) fn has_spring_basis(setup: &Setup) -> bool {
 /// (the output-error basin widens like 1/length: measured half-width 5–17 % of the truth
 /// at 2,000 samples, so ≥ 50 % at 200).
 const ACCEL_SCAN_SAMPLES: usize = 200;
+/// Least signal energy of the scanned prefix, in noise units (`Σ (y² − σ²)/σ²` over its
+/// samples and channels), below which a linear law's prefix is doubled (up to the whole
+/// record). Why: the prefix must hold the stiffness's signature above the noise. Measured
+/// on the two-beam accelerometer layout, random input, 100 % noise of the *whole record's*
+/// RMS: the undamped structure's response grows over the record, so the first 200 samples
+/// hold 0.2–0.46× the RMS of a 2,000-sample record (energy ≈ 100 noise units there; the
+/// scan found the truth on seeds 1–5) but only 0.06–0.16× of a 20,000-sample one (≈ 10):
+/// there the scan picked a start 9× the truth and the answer was **+609 % with a 0.005 %
+/// stated error** (seed 2; 50 %, seed 1: −1.3 % with 0.003 %).
+const SCAN_PREFIX_ENERGY: f64 = 100.0;
 /// The finest model sub-step level the accelerometer-only scan tries, whatever the setup's
 /// sub-steps (data of a continuous structure need the model near their own time step).
 const ACCEL_MAX_SUBSTEPS: usize = 128;
@@ -82,6 +92,34 @@ fn log_grid(range: [f64; 2], scale: f64, points: usize) -> Vec<f64> {
         .collect()
 }
 
+/// The prefix the start scan runs on and its signal energy in noise units: the first
+/// [`ACCEL_SCAN_SAMPLES`], doubled for a linear law while its energy is below
+/// [`SCAN_PREFIX_ENERGY`] (at most the whole record). A non-linear law keeps the 200
+/// samples: its friction × stiffness grid (1,240 simulations) on a longer prefix would cost
+/// minutes per doubling, and the measured friction cases were found from 200 (not
+/// measured with a longer one).
+fn scan_prefix(data: &TestData, sigma: &[f64], linear: bool) -> (usize, f64) {
+    let energy = |n: usize| -> f64 {
+        data.response[..n]
+            .iter()
+            .map(|y| {
+                y.iter()
+                    .zip(sigma)
+                    .filter(|(_, s)| **s > 0.0 && s.is_finite())
+                    .map(|(v, s)| (v * v - s * s) / (s * s))
+                    .sum::<f64>()
+            })
+            .sum()
+    };
+    let mut n = data.len().min(ACCEL_SCAN_SAMPLES);
+    let mut e = energy(n);
+    while linear && e < SCAN_PREFIX_ENERGY && n < data.len() {
+        n = (2 * n).min(data.len());
+        e = energy(n);
+    }
+    (n, e)
+}
+
 /// The start of the output-error stage when the residual-force stage cannot give one: on
 /// the record prefix `exc`/`resp`, a log-spaced scan of each spring stiffness (the others
 /// at their current value), then — when the law has friction terms (`sign`) — a log-spaced
@@ -94,6 +132,7 @@ fn log_grid(range: [f64; 2], scale: f64, points: usize) -> Vec<f64> {
 /// with a 0.08 % stated error** (friction −1.6 %; three probe restarts were still finding
 /// lower costs), seed 2 at spring −104 % with 0.01 % (friction +46 %).
 #[allow(clippy::too_many_arguments)]
+#[allow(clippy::too_many_arguments)]
 fn scan_start(
     setup: &Setup,
     model: &Model,
@@ -103,6 +142,7 @@ fn scan_start(
     resp: &[Vec<f64>],
     sigma: &[f64],
     substeps: usize,
+    stiffness_points: usize,
 ) -> (Vec<f64>, f64) {
     use crate::estimate::output_error::residuals;
     let nobs = (exc.len() * sigma.len()).max(1) as f64;
@@ -131,7 +171,7 @@ fn scan_start(
     let frictions: Vec<usize> = (0..basis.len())
         .filter(|&j| matches!(basis[j], Basis::SignU | Basis::SignV))
         .collect();
-    let kgrid = log_grid(ACCEL_SCAN_RANGE, kmax, ACCEL_SCAN_POINTS);
+    let kgrid = log_grid(ACCEL_SCAN_RANGE, kmax, stiffness_points);
     let fgrid = log_grid(FRICTION_SCAN_RANGE, frms, FRICTION_SCAN_POINTS);
     let mut start = initial.to_vec();
     let mut cost = cost_at(&start);
@@ -691,10 +731,18 @@ pub(super) fn identify_from_scan(
         .iter()
         .flat_map(|c| c.basis.iter().cloned())
         .collect();
-    let len = data.len().min(ACCEL_SCAN_SAMPLES);
+    let linear = crate::simulate::law_is_linear(setup);
+    let (len, prefix_energy) = scan_prefix(data, sigma, linear);
+    // The stiffness basins narrow like 1/length: a longer prefix gets proportionally more
+    // scan points (a linear law's prefix only; its scan runs the composed one-sample map).
+    let points = ACCEL_SCAN_POINTS * len.div_ceil(ACCEL_SCAN_SAMPLES).max(1);
     let (exc, resp) = (&data.excitation[..len], &data.response[..len]);
     let initial = setup.initial_params();
-    let scan = |sub: usize| scan_start(setup, model, &basis, &initial, exc, resp, sigma, sub);
+    let scan = |sub: usize| {
+        scan_start(
+            setup, model, &basis, &initial, exc, resp, sigma, sub, points,
+        )
+    };
     // Model sub-steps: accelerations are dominated by the highest modes, where Newmark's
     // period error is largest, and a too coarse model moves the cost's minimum (measured,
     // 50 % noise, seed 1: with 16 sub-steps on 64-sub-step data the global minimum lies at
@@ -715,7 +763,6 @@ pub(super) fn identify_from_scan(
     let mut level = opts.substeps;
     let (mut start, mut cost) = scan(level);
     let mut sub = level;
-    let linear = crate::simulate::law_is_linear(setup);
     let finest = (8 * opts.substeps).max(ACCEL_MAX_SUBSTEPS);
     while level * 2 <= finest && (linear || data.len() * level * 2 <= MAX_RAISED_STEPS) {
         level *= 2;
@@ -826,7 +873,8 @@ pub(super) fn identify_from_scan(
             error_spectral_radius: None,
             tuning: vec![
                 ("scan_samples".into(), len as f64),
-                ("scan_points".into(), ACCEL_SCAN_POINTS as f64),
+                ("scan_prefix_energy".into(), prefix_energy),
+                ("scan_points".into(), points as f64),
                 ("scan_normalised_cost".into(), cost),
                 ("model_substeps".into(), opts.substeps as f64),
                 ("start_grown_to_samples".into(), grown as f64),
