@@ -132,7 +132,6 @@ fn scan_prefix(data: &TestData, sigma: &[f64], linear: bool) -> (usize, f64) {
 /// with a 0.08 % stated error** (friction −1.6 %; three probe restarts were still finding
 /// lower costs), seed 2 at spring −104 % with 0.01 % (friction +46 %).
 #[allow(clippy::too_many_arguments)]
-#[allow(clippy::too_many_arguments)]
 fn scan_start(
     setup: &Setup,
     model: &Model,
