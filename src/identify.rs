@@ -47,7 +47,7 @@ mod scan;
 
 use pem::{PEM_MAX_COST, pem_undetermined, refine_by_prediction_error};
 use scan::{
-    MAX_SCAN_PROBE_MOVE, ScanReason, acceleration_only, has_spring_basis,
+    MAX_SCAN_PROBE_MOVE, SETTLE_ROUNDS, ScanReason, acceleration_only, has_spring_basis,
     identify_acceleration_only, identify_from_scan, scan_fallback_applies,
 };
 
@@ -77,8 +77,9 @@ pub enum IdentifyError {
     #[error("the data hold {0} samples; at least 3 are needed")]
     TooShort(usize),
     #[error(
-        "{context}: the output-error stage started from a scan did not settle — its probes kept finding lower costs and moved `{parameter}` by {moved:.1} of the stated standard errors (limit {}); refused rather than reported with errors that would not hold",
-        MAX_SCAN_PROBE_MOVE
+        "{context}: the output-error stage started from a scan did not settle — its probes kept finding lower costs and moved `{parameter}` by {moved:.1} of the stated standard errors (limit {}; up to {} restarts from the probe's end tried); refused rather than reported with errors that would not hold",
+        MAX_SCAN_PROBE_MOVE,
+        SETTLE_ROUNDS
     )]
     ScanUnsettled {
         context: String,
