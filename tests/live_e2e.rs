@@ -37,6 +37,22 @@ fn wait_for_frames(prefix: &str, session: &str, n: u64) {
     }
 }
 
+/// `jointid replay RECORDING --json`, which must succeed.
+fn replay_json(rec: &std::path::Path) -> Value {
+    let replay = Command::new(JOINTID)
+        .arg("replay")
+        .arg(rec)
+        .arg("--json")
+        .output()
+        .unwrap();
+    assert!(
+        replay.status.success(),
+        "{}",
+        String::from_utf8_lossy(&replay.stderr)
+    );
+    serde_json::from_slice(&replay.stdout).unwrap()
+}
+
 fn params_of(v: &Value) -> Vec<(String, f64)> {
     v.as_array()
         .unwrap()
@@ -106,18 +122,7 @@ fn live_identifies_what_acquire_sim_publishes_and_the_recording_replays() {
     );
 
     // The recorded session replays to the same parameters (same code, same data).
-    let replay = Command::new(JOINTID)
-        .arg("replay")
-        .arg(&rec)
-        .arg("--json")
-        .output()
-        .unwrap();
-    assert!(
-        replay.status.success(),
-        "{}",
-        String::from_utf8_lossy(&replay.stderr)
-    );
-    let rv: Value = serde_json::from_slice(&replay.stdout).unwrap();
+    let rv = replay_json(&rec);
     assert_eq!(rv["samples"], 2000);
     assert_eq!(params_of(&rv["parameters"]), live_params);
 }
@@ -343,18 +348,7 @@ fn accelerometers_only_session_is_identified_by_batch_refits() {
         "truth outside {ci:?}"
     );
 
-    let replay = Command::new(JOINTID)
-        .arg("replay")
-        .arg(&rec)
-        .arg("--json")
-        .output()
-        .unwrap();
-    assert!(
-        replay.status.success(),
-        "{}",
-        String::from_utf8_lossy(&replay.stderr)
-    );
-    let rv: Value = serde_json::from_slice(&replay.stdout).unwrap();
+    let rv = replay_json(&rec);
     assert_eq!(rv["samples"], 4000);
     assert_eq!(params_of(&rv["parameters"]), params_of(&last["parameters"]));
 }
