@@ -86,6 +86,15 @@ pub enum IdentifyError {
         parameter: String,
         moved: f64,
     },
+    /// A law with friction whose residual-force stage was refused, and whose scan-started
+    /// output-error fallback did not give an accepted answer either.
+    #[error(
+        "{refused}; the output-error stage started from a scan was tried instead and not accepted: {why}"
+    )]
+    ScanFallbackRejected {
+        refused: Box<IdentifyError>,
+        why: String,
+    },
 }
 
 /// The measured test, aligned by sample: `excitation[i]` and `response[i]` belong to

@@ -739,11 +739,14 @@ pub(super) fn identify_from_scan(
         ScanReason::AccelerationOnly => String::new(),
     };
     let refused_note = refused.clone();
-    let refuse = move || match reason {
+    let refuse = move |why: String| match reason {
         ScanReason::AccelerationOnly => IdentifyError::Estimate(EstimateError::AccelerationOnly {
             channels: sigma.len(),
         }),
-        ScanReason::ResidualForceRefused(e) => e,
+        ScanReason::ResidualForceRefused(e) => IdentifyError::ScanFallbackRejected {
+            refused: Box::new(e),
+            why,
+        },
     };
     let basis: Vec<Basis> = setup
         .connections
@@ -791,7 +794,9 @@ pub(super) fn identify_from_scan(
         }
     }
     if !cost.is_finite() {
-        return Err(refuse());
+        return Err(refuse(format!(
+            "the scan's cost on the first {len} samples is not finite at any point"
+        )));
     }
     let mut opts = opts.clone();
     opts.substeps = sub;
@@ -917,7 +922,16 @@ pub(super) fn identify_from_scan(
             .map(|r| r.substeps)
     };
     let Some(mut sub) = accepted_substeps(&result) else {
-        return Err(refuse());
+        let why = result.output_error.as_ref().map_or_else(
+            || "no output-error result".to_string(),
+            |r| {
+                format!(
+                    "{} (normalised cost {:.4} → {:.4})",
+                    r.note, r.cost_start, r.cost_end
+                )
+            },
+        );
+        return Err(refuse(why));
     };
     let unsettled = |parameter: String, moved: f64| IdentifyError::ScanUnsettled {
         context: if accel {
