@@ -923,7 +923,16 @@ pub(super) fn identify_from_scan(
     };
     let Some(mut sub) = accepted_substeps(&result) else {
         let why = result.output_error.as_ref().map_or_else(
-            || "no output-error result".to_string(),
+            || {
+                // Why the stage gave no report is in its note.
+                result
+                    .notes
+                    .iter()
+                    .rev()
+                    .find(|n| n.starts_with("output-error refinement"))
+                    .cloned()
+                    .unwrap_or_else(|| "no output-error result".to_string())
+            },
             |r| {
                 format!(
                     "{} (normalised cost {:.4} → {:.4})",
