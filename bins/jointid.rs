@@ -45,10 +45,13 @@ enum EncodingArg {
 
 #[derive(Clone, Copy, ValueEnum)]
 enum EstimatorArg {
-    /// The 1989 one-step estimator (reference).
-    Paper,
-    /// Kalman joint input–state estimator with smoothing (default).
+    /// Kalman joint input–state estimator with smoothing and output-error refinement (default).
     Kalman,
+    /// Maximum likelihood on the exactly discretised model, discretisation chosen by
+    /// likelihood, initial state estimated (laws linear in the state).
+    Ml,
+    /// The 1989 one-step estimator alone (reference).
+    Paper,
 }
 
 #[derive(Subcommand)]
@@ -118,6 +121,13 @@ enum Command {
         /// Print one JSON object instead of the table.
         #[arg(long)]
         json: bool,
+        /// Exit non-zero (after writing every output) when the identified model does not
+        /// explain the data: residuals not white, or fitted noise above the stated noise_std.
+        #[arg(long)]
+        strict: bool,
+        /// Switch the output-error refinement off (the Kalman pipeline's last stage).
+        #[arg(long)]
+        no_refine: bool,
     },
     /// Export a setup's component model as Matrix Market (M, K, C), a DOF map and a setup
     /// that uses them.
@@ -282,18 +292,22 @@ fn run(cli: Cli) -> Result<ExitCode> {
             forgetting,
             track_every,
             json,
+            strict,
+            no_refine,
         } => {
             let req = ReplayRequest {
                 recording,
                 setup,
                 passes,
                 estimator: estimator.map(|e| match e {
+                    EstimatorArg::Ml => EstimatorKind::Ml,
                     EstimatorArg::Paper => EstimatorKind::Paper,
                     EstimatorArg::Kalman => EstimatorKind::Kalman,
                 }),
                 out,
                 forgetting,
                 track_every,
+                no_refine,
             };
             let bar = ProgressBar::new(0);
             bar.set_style(
@@ -335,6 +349,14 @@ fn run(cli: Cli) -> Result<ExitCode> {
             }
             if let Some(f) = &outcome.identification.failure {
                 anyhow::bail!("{f}");
+            }
+            let inadequate = outcome.identification.inadequacy();
+            if strict && !inadequate.is_empty() {
+                anyhow::bail!(
+                    "refused under --strict: the identified model does not explain the data ({} reason(s)): {}",
+                    inadequate.len(),
+                    inadequate.join("; ")
+                );
             }
             Ok(ExitCode::SUCCESS)
         }
@@ -531,7 +553,25 @@ fn print_table(o: &ReplayOutcome) {
         o.samples,
         id.estimator
     );
-    for p in &id.passes {
+    if let Some(ml) = &id.maximum_likelihood {
+        let worst = ml.whiteness.iter().copied().fold(0.0, f64::max);
+        println!(
+            "  maximum likelihood: {} iterations, {} samples, fitted noise {} (per channel), residual whiteness ≤ {worst:.2} (1 = white), fit {:.1}–{:.1} %",
+            ml.iterations,
+            o.samples,
+            ml.noise_std
+                .iter()
+                .map(|s| format!("{s:.2e}"))
+                .collect::<Vec<_>>()
+                .join(" "),
+            ml.fit_percent.iter().copied().fold(f64::INFINITY, f64::min),
+            ml.fit_percent
+                .iter()
+                .copied()
+                .fold(f64::NEG_INFINITY, f64::max),
+        );
+    }
+    for p in id.passes.iter().filter(|_| id.maximum_likelihood.is_none()) {
         let d = &p.diagnostics;
         println!(
             "  pass {:>2}: cond(W½S) {:.3e}, |S| {:.3e}, error recursion ρ {}, fit cond {}, stuck samples excluded {:?}",

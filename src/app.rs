@@ -207,6 +207,8 @@ pub struct ReplayRequest {
     pub forgetting: Option<f64>,
     /// Tracking: solve interval in samples (overrides `estimator.track_every`).
     pub track_every: Option<usize>,
+    /// Switch the output-error refinement of the Kalman pipeline off (`--no-refine`).
+    pub no_refine: bool,
 }
 
 /// What `replay` found.
@@ -240,6 +242,7 @@ impl ReplayOutcome {
             "stop_reason": id.stop_reason,
             "failure": id.failure,
             "output_error": id.output_error,
+            "maximum_likelihood": id.maximum_likelihood,
             "notes": id.notes,
             "input_warnings": self.input_warnings,
             "input_error": self.input_error,

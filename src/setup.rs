@@ -332,11 +332,16 @@ fn quarter() -> f64 {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
 pub enum EstimatorKind {
-    /// The 1989 one-step least-squares estimator (the reference).
+    /// The 1989 one-step least-squares estimator alone (the reference).
     Paper,
-    /// Steady-state Kalman joint input–state estimator with smoothing (the default).
+    /// Steady-state Kalman joint input–state estimator with smoothing, refined by output
+    /// error (the default; the residual-force pipeline the live stepper runs online).
     #[default]
     Kalman,
+    /// Maximum-likelihood output error on the exactly discretised model (`estimate::ml`):
+    /// exact for laws linear in the state on data of any sub-steps; not yet reliable for
+    /// `sign` laws (see ACCURACY.md).
+    Ml,
 }
 
 impl std::str::FromStr for EstimatorKind {
@@ -345,8 +350,9 @@ impl std::str::FromStr for EstimatorKind {
         match s {
             "paper" => Ok(Self::Paper),
             "kalman" => Ok(Self::Kalman),
+            "ml" => Ok(Self::Ml),
             other => Err(format!(
-                "unknown estimator `{other}` (expected `paper` or `kalman`)"
+                "unknown estimator `{other}` (expected `ml`, `kalman` or `paper`)"
             )),
         }
     }
@@ -357,6 +363,7 @@ impl std::fmt::Display for EstimatorKind {
         f.write_str(match self {
             Self::Paper => "paper",
             Self::Kalman => "kalman",
+            Self::Ml => "ml",
         })
     }
 }

@@ -13,6 +13,7 @@
 #![allow(non_snake_case)]
 
 pub mod kalman;
+pub mod ml;
 pub mod output_error;
 pub mod paper;
 pub mod prediction_error;

@@ -753,7 +753,7 @@ fn online_estimator(
     };
     Ok(match kind {
         EstimatorKind::Paper => Box::new(PaperEstimator::new(inputs)?),
-        EstimatorKind::Kalman => {
+        EstimatorKind::Kalman | EstimatorKind::Ml => {
             let scale = force_scale_of(&with_terms);
             let ko = KalmanOptions {
                 force_walk_std: opts.force_walk_std.unwrap_or(scale),

@@ -31,6 +31,7 @@ use crate::identify::{
     Identification, IdentifyError, IdentifyOptions, PassReport, TestData, identify,
 };
 use crate::io::mcap::{FrameStream, RecordingHeader, stream_frames};
+use crate::setup::EstimatorKind;
 use crate::setup::Setup;
 
 /// What the identification stage sends to the sink.
@@ -208,6 +209,12 @@ pub fn run(
     }
     if let Some(k) = req.estimator {
         opts.estimator = k;
+        // The output-error refinement belongs to the Kalman pipeline: `--estimator paper`
+        // is the 1989 method alone.
+        opts.output_error = setup.estimator.output_error && k == EstimatorKind::Kalman;
+    }
+    if req.no_refine {
+        opts.output_error = false;
     }
     if let Some(l) = req.forgetting {
         if !(l > 0.0 && l <= 1.0) {
