@@ -35,7 +35,11 @@ fn data(setup: &Setup, substeps: usize, noise: f64, seed: u64, skip: usize, n: u
             steps: n + skip,
             dt_s: setup.dt_s,
             substeps,
-            noise: if noise > 0.0 { Noise::Additive(noise) } else { Noise::None },
+            noise: if noise > 0.0 {
+                Noise::Additive(noise)
+            } else {
+                Noise::None
+            },
             seed,
         },
     )
@@ -55,7 +59,11 @@ fn noise_free_newmark_data_are_identified_exactly_with_their_own_scheme_chosen()
     let d = data(&setup, 1, 0.0, 1, 0, 1000);
     let (fit, _) = identify_ml(&setup, &model, &d, &MlOptions::default()).unwrap();
     assert_eq!((fit.scheme, fit.substeps), (Scheme::Newmark, 1));
-    assert!((fit.params[0] / 3e5 - 1.0).abs() < 1e-6, "u = {}", fit.params[0]);
+    assert!(
+        (fit.params[0] / 3e5 - 1.0).abs() < 1e-6,
+        "u = {}",
+        fit.params[0]
+    );
     assert!(fit.params[1].abs() < 1e-6, "v = {}", fit.params[1]);
 }
 
@@ -65,10 +73,20 @@ fn data_of_eight_substeps_at_one_percent_noise_within_three_standard_errors() {
     let model = Model::for_identification(&setup).unwrap();
     let d = data(&setup, 8, 0.01, 4, 0, 2000);
     let (fit, _) = identify_ml(&setup, &model, &d, &MlOptions::default()).unwrap();
-    assert_eq!((fit.scheme, fit.substeps), (Scheme::Newmark, 8), "{}", fit.discretisation);
+    assert_eq!(
+        (fit.scheme, fit.substeps),
+        (Scheme::Newmark, 8),
+        "{}",
+        fit.discretisation
+    );
     for (k, truth) in [3e5, 0.0].iter().enumerate() {
         let z = (fit.params[k] - truth) / fit.std_errors[k];
-        assert!(z.abs() < 3.0, "param {k}: {} ± {} ({z:.1} se)", fit.params[k], fit.std_errors[k]);
+        assert!(
+            z.abs() < 3.0,
+            "param {k}: {} ± {} ({z:.1} se)",
+            fit.params[k],
+            fit.std_errors[k]
+        );
     }
     // The error is close to the bound for a right model: 0.0002 % of the stiffness here.
     assert!(fit.std_errors[0] / 3e5 < 1e-4, "se {}", fit.std_errors[0]);
@@ -84,7 +102,12 @@ fn a_record_that_starts_in_motion_is_identified_with_its_initial_state() {
     let (fit, _) = identify_ml(&setup, &model, &d, &MlOptions::default()).unwrap();
     for (k, truth) in [3e5, 0.0].iter().enumerate() {
         let z = (fit.params[k] - truth) / fit.std_errors[k];
-        assert!(z.abs() < 3.0, "param {k}: {} ± {} ({z:.1} se)", fit.params[k], fit.std_errors[k]);
+        assert!(
+            z.abs() < 3.0,
+            "param {k}: {} ± {} ({z:.1} se)",
+            fit.params[k],
+            fit.std_errors[k]
+        );
     }
     let moving = fit.initial_state.iter().any(|v| v.abs() > 1e-9);
     assert!(moving, "the estimated initial state should not be rest");
@@ -94,7 +117,10 @@ fn a_record_that_starts_in_motion_is_identified_with_its_initial_state() {
         ..MlOptions::default()
     };
     match identify_ml(&setup, &model, &d, &at_rest) {
-        Ok((f, _)) => assert!(!f.warnings.is_empty(), "a wrong initial state must be flagged"),
+        Ok((f, _)) => assert!(
+            !f.warnings.is_empty(),
+            "a wrong initial state must be flagged"
+        ),
         Err(_) => {}
     }
 }
@@ -113,7 +139,11 @@ fn replay_with_ml_and_strict_refuses_a_model_that_does_not_explain_the_data() {
         .args(["--noise", "additive:0.01", "--seed", "3"])
         .output()
         .unwrap();
-    assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
     let text = std::fs::read_to_string("recordings/two-beam-friction.toml")
         .unwrap()
         .lines()
@@ -143,7 +173,10 @@ fn replay_with_ml_and_strict_refuses_a_model_that_does_not_explain_the_data() {
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "--strict must refuse: {err}");
-    assert!(err.contains("refused under --strict") && err.contains("not white"), "{err}");
+    assert!(
+        err.contains("refused under --strict") && err.contains("not white"),
+        "{err}"
+    );
     // The table was still printed (nothing computed is lost).
     assert!(String::from_utf8_lossy(&out.stdout).contains("joint6"));
 }

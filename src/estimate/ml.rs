@@ -1597,8 +1597,13 @@ fn finish(
             weakest: prob.setup.param_keys()[jmax].clone(),
         });
     }
-    // Newey–West sandwich on per-sample scores (scaled columns).
-    let lags = (4.0 * (n_all as f64 / 100.0).powf(2.0 / 9.0)).ceil() as usize;
+    // Sandwich on per-sample scores (scaled columns), the long-run covariance of their sum
+    // by overlapping batch means (the Bartlett-kernel HAC) over a window as long as the
+    // residuals stay correlated: the first lag where every channel's autocorrelation is
+    // within 3/√N, at least the Newey–West default. A wrong model leaves residuals
+    // correlated over hundreds of samples, and the window — and the error — grows with them.
+    let nw = (4.0 * (n_all as f64 / 100.0).powf(2.0 / 9.0)).ceil() as usize;
+    let window = correlation_length(prob, &base, n_all).max(nw) + 1;
     let mut scores = vec![DVector::zeros(nc); n_all];
     for (i, s) in scores.iter_mut().enumerate() {
         for j in 0..nc {
@@ -1609,19 +1614,21 @@ fn finish(
             s[j] = acc / scale[j];
         }
     }
-    let mut omega = DMatrix::zeros(nc, nc);
-    for l in 0..=lags {
-        let w = 1.0 - l as f64 / (lags as f64 + 1.0);
-        let mut g = DMatrix::zeros(nc, nc);
-        for i in l..n_all {
-            g.ger(1.0, &scores[i], &scores[i - l], 1.0);
-        }
-        if l == 0 {
-            omega += g;
-        } else {
-            omega += (&g + g.transpose()) * w;
-        }
+    let b = window.min(n_all);
+    let mut run = DVector::zeros(nc);
+    for s in scores.iter().take(b) {
+        run += s;
     }
+    let mut omega = DMatrix::zeros(nc, nc);
+    let batches = n_all - b + 1;
+    for t in 0..batches {
+        if t > 0 {
+            run += &scores[t + b - 1];
+            run -= &scores[t - 1];
+        }
+        omega.ger(1.0, &run, &run, 1.0);
+    }
+    omega *= n_all as f64 / (b as f64 * batches as f64);
     let cov_sw = &Ainv * omega * &Ainv;
     let mut crlb = Vec::with_capacity(np);
     let mut se_sw = Vec::with_capacity(np);
@@ -1758,6 +1765,42 @@ fn finish(
         warnings,
     };
     Ok((fit, base))
+}
+
+/// Lags over which the output residuals stay correlated: the first lag at which every
+/// channel's autocorrelation is within 3/√N (searched up to N/4).
+fn correlation_length(prob: &Problem, tr: &Trace, n: usize) -> usize {
+    let m = prob.m;
+    let res: Vec<Vec<f64>> = (0..m)
+        .map(|k| {
+            (0..n)
+                .map(|i| {
+                    let y = prob.measured[i * m + k];
+                    if y.is_finite() {
+                        y - tr.y[i * m + k]
+                    } else {
+                        0.0
+                    }
+                })
+                .collect()
+        })
+        .collect();
+    let c0: Vec<f64> = res
+        .iter()
+        .map(|e| e.iter().map(|v| v * v).sum::<f64>().max(1e-300))
+        .collect();
+    let limit = 3.0 / (n as f64).sqrt();
+    for l in 1..(n / 4).max(2) {
+        let worst = res
+            .iter()
+            .zip(&c0)
+            .map(|(e, c)| ((l..n).map(|i| e[i] * e[i - l]).sum::<f64>() / c).abs())
+            .fold(0.0, f64::max);
+        if worst < limit {
+            return l - 1;
+        }
+    }
+    n / 4
 }
 
 /// 99.9 % quantile of χ² with `k` degrees of freedom (Wilson–Hilferty).
