@@ -180,3 +180,18 @@ fn replay_with_ml_and_strict_refuses_a_model_that_does_not_explain_the_data() {
     // The table was still printed (nothing computed is lost).
     assert!(String::from_utf8_lossy(&out.stdout).contains("joint6"));
 }
+
+#[test]
+fn laws_with_sign_terms_are_refused_with_the_reason() {
+    let setup =
+        Setup::from_file(std::path::Path::new("recordings/two-beam-friction.toml")).unwrap();
+    let model = Model::for_identification(&setup).unwrap();
+    let d = data(&setup, 1, 0.01, 1, 0, 200);
+    let err = identify_ml(&setup, &model, &d, &MlOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("`sign(u)` is not supported") && err.contains("--estimator kalman"),
+        "{err}"
+    );
+}
