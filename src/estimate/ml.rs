@@ -429,6 +429,8 @@ impl std::fmt::Display for Discretisation {
 /// The discrete-time model at one parameter point.
 struct Discrete {
     desc: Discretisation,
+    /// Steps the simulation takes per sample: 1 when the sub-steps were composed.
+    steps_per_sample: usize,
     Phi: DMatrix<f64>,
     /// `Γ₁` and `Γ₂/h` for the excitation (`ns × ne`) and the non-linear force (`ns × q`).
     G1p: DMatrix<f64>,
@@ -715,6 +717,24 @@ impl<'a> Problem<'a> {
                 (Phi, g1, g2)
             }
         };
+        // Without state-dependent connection forces the sub-steps compose into one sample
+        // map of the same first-order-hold form (inputs linear across the sample):
+        // Φ' = Φˢ, Γ₁' = Σⱼ Φʲ Γ₁, Γ₂' = Σₖ Φˢ⁻¹⁻ᵏ (k Γ₁ + Γ₂)/s.
+        let composed = substeps > 1 && !self.law_is_nonlinear();
+        let (Phi, g1, g2) = if composed {
+            let mut P = DMatrix::<f64>::identity(ns, ns);
+            let mut c1 = DMatrix::zeros(ns, nu);
+            let mut c2 = DMatrix::zeros(ns, nu);
+            let sf = substeps as f64;
+            for k in (0..substeps).rev() {
+                c1 += &P * &g1;
+                c2 += &P * (&g1 * (k as f64 / sf) + &g2 * (1.0 / sf));
+                P = &Phi * P;
+            }
+            (P, c1, c2)
+        } else {
+            (Phi, g1, g2)
+        };
         let g1 = |k: usize| g1.column(k).into_owned();
         let g2 = |k: usize| g2.column(k).into_owned();
         let G1p = DMatrix::from_columns(&(0..ne).map(g1).collect::<Vec<_>>());
@@ -740,6 +760,7 @@ impl<'a> Problem<'a> {
         Au.columns_mut(n, n).copy_from(&A22);
         Ok(Discrete {
             desc: disc,
+            steps_per_sample: if composed { 1 } else { substeps },
             Phi,
             G1p,
             G2p,
@@ -769,7 +790,7 @@ impl<'a> Problem<'a> {
         out: &mut Trace,
     ) -> Result<(), usize> {
         let (n, ne, q, m) = (self.n, self.ne, self.q, self.m);
-        let substeps = disc.desc.substeps;
+        let substeps = disc.steps_per_sample;
         let laws = self.laws(p);
         // Linear connection terms, for the reported total force.
         let mut lin = vec![(0.0, 0.0, 0.0); q];
@@ -1012,7 +1033,34 @@ fn jacobian(
             cols.push(column(&tr, Some(&tr2), 2.0 * step));
         }
     }
-    if free_z0 {
+    if free_z0 && !prob.law_is_nonlinear() && disc.steps_per_sample == 1 {
+        // The outputs are affine in z₀ with the free response `y_i = H Φ^i z₀`: propagate the
+        // read-out rows `H Φ^i` (m × 2n per sample) instead of 2n simulations.
+        let n = prob.n;
+        let ns = 2 * n;
+        let mut W = DMatrix::zeros(m, ns);
+        for (k, st) in prob.model.stations.iter().enumerate() {
+            match st.quantity {
+                Quantity::Displacement => W[(k, st.dof)] = 1.0,
+                Quantity::Velocity => W[(k, n + st.dof)] = 1.0,
+                Quantity::Acceleration => W.row_mut(k).copy_from(&disc.Au.row(st.dof)),
+            }
+        }
+        let mut zc: Vec<Vec<f64>> = vec![vec![0.0; len * m]; ns];
+        let mut next = DMatrix::zeros(m, ns);
+        for i in 0..len {
+            for k in 0..m {
+                if prob.measured[i * m + k].is_finite() {
+                    for (s, col) in zc.iter_mut().enumerate() {
+                        col[i * m + k] = W[(k, s)] / sigma[k];
+                    }
+                }
+            }
+            next.gemm(1.0, &W, &disc.Phi, 0.0);
+            std::mem::swap(&mut W, &mut next);
+        }
+        cols.extend(zc);
+    } else if free_z0 {
         let ns = 2 * prob.n;
         let nz = prob.n;
         for s in 0..ns {
@@ -1239,6 +1287,8 @@ pub fn identify_ml(
             s *= 2;
         }
     }
+    let clock = std::time::Instant::now();
+    let debug = std::env::var_os("JOINTID_ML_DEBUG").is_some();
     let mut exact = exact;
     if candidates.len() > 1 {
         let len = (2 * opts.first_stage_samples).max(needed).min(n_all);
@@ -1267,6 +1317,12 @@ pub fn identify_ml(
         if let Some((_, d, _)) = best {
             exact = d;
         }
+    }
+    if debug {
+        eprintln!(
+            "early selection {exact}: {:.3} s",
+            clock.elapsed().as_secs_f64()
+        );
     }
     // The first prefix is the shortest (from `first_stage_samples`, doubling) over which the
     // data determine the linear parameters to a quarter of their size: shorter, the cost is
@@ -1334,7 +1390,7 @@ pub fn identify_ml(
                 active,
                 opts.free_initial_state,
             )?;
-            if std::env::var_os("JOINTID_ML_DEBUG").is_some() {
+            if debug {
                 eprintln!("stage len {len}: {} its, p = {:?}", it, pt.p);
             }
             iterations += it;
@@ -1351,6 +1407,9 @@ pub fn identify_ml(
     // 2. The discretisation the data were made with is a nuisance parameter of the
     //    likelihood: measured data select the exact map; a Newmark simulation its own
     //    sub-steps. Each candidate is refitted from the exact fit and the likeliest kept.
+    if debug {
+        eprintln!("homotopy: {:.3} s", clock.elapsed().as_secs_f64());
+    }
     let mut best = (exact, pt_cost(&prob, &pt, exact)?, None::<Point>);
     let mut compared = vec![(exact, best.1)];
     for &d in candidates.iter().filter(|&&d| d != exact) {
@@ -1371,6 +1430,9 @@ pub fn identify_ml(
                 best = (d, c, Some(cand));
             }
         }
+    }
+    if debug {
+        eprintln!("screening: {:.3} s", clock.elapsed().as_secs_f64());
     }
     let mut d = best.0;
     if let Some(p) = best.2 {
