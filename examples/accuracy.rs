@@ -1,5 +1,5 @@
 //! Accuracy campaign of the estimators on the paper's two-beam problem: synthetic tests over
-//! many noise seeds, each identified, summarised as the README's tables (error of the mean,
+//! many noise seeds, each identified, summarised as the tables of ACCURACY.md (error of the mean,
 //! spread over seeds, mean stated standard error, mean Cramér–Rao bound, coverage of the
 //! stated 95 % intervals).
 //!
@@ -10,7 +10,7 @@
 //!     [--grid-samples 2000,20000] [--first-seed 1] [--verbose]
 //! ```
 //!
-//! `--grid` runs the README grid (noise 10/50/100 %, 2,000 and 20,000 samples, both
+//! `--grid` runs the ACCURACY.md grid (noise 10/50/100 %, 2,000 and 20,000 samples, both
 //! estimators) for the chosen connection law.
 
 use anyhow::{Context, Result, bail};

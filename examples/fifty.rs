@@ -1,6 +1,6 @@
 //! The 50-element-per-beam two-beam model (issue 4): the paper's estimator on the full
 //! model against the default (Kalman + output-error) estimator on a Craig–Bampton reduction
-//! of it. Prints the README table "The 50-element model".
+//! of it. Prints the table in ACCURACY.md "The 50-element model".
 //!
 //! ```text
 //! cargo run --release --example fifty -- [--samples 2000] [--seeds 3] [--modes 0,4,12] [--full]

@@ -1,4 +1,4 @@
-//! Regenerates the README table "What the 1989 estimator gives on the paper's problem":
+//! Regenerates the table in ACCURACY.md "What the 1989 estimator gives on the paper's problem":
 //! `cargo run --release --example paper_table`. Sine input at node 1 (200 Hz, 2e4 N), data
 //! from the identification's own discretisation (dt = 1e-4 s, one Newmark step per sample),
 //! the paper's basis, 15 passes as in the paper, median |error| over 9 noise seeds.

@@ -64,7 +64,7 @@ pub enum IdentifyError {
         source: RefitError,
     },
     #[error(
-        "pass {pass}, connection `{connection}`: the measurements do not determine the joint deformation: its posterior std {posterior_std:.3e} m is {:.2}× the RMS of its estimate ({rms:.3e} m; limit {}) — the residual force trades off against unobserved (static) deformation and any fit would be a confident wrong answer; add a displacement or velocity channel near the joint (accelerometer-only layouts: see the README)",
+        "pass {pass}, connection `{connection}`: the measurements do not determine the joint deformation: its posterior std {posterior_std:.3e} m is {:.2}× the RMS of its estimate ({rms:.3e} m; limit {}) — the residual force trades off against unobserved (static) deformation and any fit would be a confident wrong answer; add a displacement or velocity channel near the joint (accelerometer-only layouts: see the ACCURACY.md)",
         posterior_std / rms.max(f64::MIN_POSITIVE),
         MAX_DEFORMATION_UNCERTAINTY
     )]
@@ -1136,7 +1136,7 @@ fn finish_with_output_error(
                 }
                 if sign_u && r.report.accepted && !r.report.rough {
                     result.notes.push(
-                        "`sign(u)` friction: its output-error cost has local minima beyond the reach of the probe (8 standard errors); on continuous data at 10 % noise the spread over seeds was measured 57× the stated standard error (README, \"Friction on continuous data\"): treat these standard errors as lower limits".into(),
+                        "`sign(u)` friction: its output-error cost has local minima beyond the reach of the probe (8 standard errors); on continuous data at 10 % noise the spread over seeds was measured 57× the stated standard error (ACCURACY.md, \"Friction on continuous data\"): treat these standard errors as lower limits".into(),
                     );
                 }
                 if r.report.rough {
@@ -1362,7 +1362,7 @@ fn run_pass(
     on_sample: &mut dyn FnMut(&StepOutput),
 ) -> Result<(PassReport, Track, Option<KalmanTuning>), IdentifyError> {
     // The model's Newmark sub-steps per sample: reported because continuous-time data are
-    // biased by too few of them (see the README's accuracy section).
+    // biased by too few of them (see the ACCURACY.md).
     let mut tuning: Vec<(String, f64)> = vec![("model_substeps".into(), opts.substeps as f64)];
     for ((sensor, s), est) in setup.sensors.iter().zip(sigma).zip(estimated) {
         let kind = if *est { "estimated" } else { "given" };
@@ -1579,7 +1579,7 @@ pub const MAX_STUCK_FRACTION: f64 = 0.5;
 
 /// Largest accepted ratio of the estimator's posterior std of a connection deformation δ to
 /// the RMS of its estimate. Above it the measurements do not pin δ down and a fit of force
-/// against δ̂ is a confident wrong answer. Measured on the two-beam problem (README,
+/// against δ̂ is a confident wrong answer. Measured on the two-beam problem (ACCURACY.md,
 /// "Accelerometers only, and mixed layouts"): shipped recordings 0.01–0.09; mixed layout,
 /// continuous data, 10 % noise 0.43–0.55 (spring +0.2 %); the same at 50 % noise 1.36–1.58
 /// in pass 1 (spring −23 % and −39 % with a stated error of 0.3 % before the output-error

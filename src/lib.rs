@@ -25,7 +25,7 @@
 //! - [`simulate`]: synthetic tests with a known truth.
 //! - [`track`]: parameters as they change during a test (forgetting, periodic solves).
 //! - [`align`]: joins excitation and response frames, checks gaps and values.
-//! - [`io`]: MCAP recordings (the data contract is in the module docs and the README).
+//! - [`io`]: MCAP recordings (the data contract is in the module docs and docs/CONTRACTS.md).
 //! - [`pipeline`]: source → aligner → stepper → refitter → sinks on threads (replay and live).
 //! - [`app`]: what the command line does.
 pub mod align;

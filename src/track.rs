@@ -1,7 +1,7 @@
 //! Tracking: connection parameters as they change during a test (a bolt loosening, a joint
 //! wearing in), from the same per-sample estimates that feed the batch fit.
 //!
-//! Design (decided here, stated in the README): the batch fit of a pass stays the
+//! Design (decided here, stated in docs/DESIGN.md): the batch fit of a pass stays the
 //! whole-record least-squares fit with its standard errors, because that is what the
 //! passes, the stopping rule and the uncertainty are about. Beside it, a [`Tracker`] keeps a
 //! second fit per connection with exponential forgetting `λ` per sample (memory

@@ -1,6 +1,6 @@
 //! Acceleration channels (issue 4, part 3): what `simulate` writes for them, what the
 //! estimators make of them, and mixed layouts. Figures and the open problem of
-//! accelerometer-only layouts on continuous data: README "Accelerometers only".
+//! accelerometer-only layouts on continuous data: ACCURACY.md "Accelerometers only".
 
 mod common;
 
@@ -125,7 +125,7 @@ fn simulated_acceleration_channels_are_consistent() {
 /// Accelerometers only, noise-free data from the model's own discretisation (1 sub-step):
 /// the paper's estimator (its S is well conditioned for accelerations) recovers the spring,
 /// and so does the default, whose output-error stage starts from a stiffness scan (the
-/// residual-force stage cannot: README "Accelerometers only"). With the output-error stage
+/// residual-force stage cannot: ACCURACY.md "Accelerometers only"). With the output-error stage
 /// switched off the default refuses the layout, naming the reason.
 #[test]
 fn accelerometers_only_own_discretisation() {

@@ -1,6 +1,6 @@
 //! Accuracy of the default (Kalman + output-error) estimator on the paper's two-beam
 //! problem, with tolerances. The heavy grids (20,000 samples, many seeds) are in
-//! `examples/accuracy.rs`, whose output is the README table; these are its light subset.
+//! `examples/accuracy.rs`, whose output is the table in ACCURACY.md; these are its light subset.
 
 mod common;
 

@@ -5,7 +5,7 @@
 //! damping path (the identified `v` term puts a dashpot on node 6).
 //!
 //! The data are noise-free and from the identification's own discretisation, where the
-//! paper estimator is exact (README, "What the 1989 estimator gives"): on noisy data its
+//! paper estimator is exact (ACCURACY.md, "What the 1989 estimator gives"): on noisy data its
 //! Step III error recursion has a spectral radius of 3–7 on this model, so *any* round-off
 //! difference (even reordering a sum) grows without bound and no two implementations
 //! agree there — that is the estimator, not the step.

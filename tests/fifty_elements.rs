@@ -2,7 +2,7 @@
 //! estimator diverges, is identified by the default one." The setups are
 //! `recordings/two-beam-fifty*.toml` (101 DOFs; the default estimator identifies on their
 //! Craig–Bampton reduction, `reduce_modes = 12`, 19 DOFs). Figures over seeds are made by
-//! `cargo run --release --example fifty` (README "The 50-element model").
+//! `cargo run --release --example fifty` (ACCURACY.md "The 50-element model").
 
 use jointid::estimate::StepOutput;
 use jointid::identify::{

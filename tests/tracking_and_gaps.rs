@@ -4,7 +4,7 @@
 //! The loosening scenario drops the true stiffness of the bolted joint of
 //! `recordings/two-beam-bolt.toml` (3e5 N/m, 20 N s/m) by 30 % at sample 2000 of 4000.
 //! Tracking uses forgetting λ = 0.995 per sample: a memory of N = 200 samples (20 ms at
-//! dt = 1e-4 s). The stated tracking time (README): within 5 % of the new stiffness
+//! dt = 1e-4 s). The stated tracking time (ACCURACY.md): within 5 % of the new stiffness
 //! 3 N = 600 samples (60 ms) after the drop.
 
 mod common;

@@ -2,7 +2,7 @@
 """Example acquisition publisher for `jointid live`, using the `iceoryx2` package from PyPI.
 
 It publishes excitation and response frames following the jointid iceoryx2 contract
-(README "Live (iceoryx2)"): one publish-subscribe service per stream named
+(docs/LIVE.md): one publish-subscribe service per stream named
 `<session>/jointid/<stream>`, payload `Slice[c_double]` (type name "f64") with the
 `jointid::FrameHeader` user header, the same QoS as jointid (subscriber buffer 8192, safe
 overflow off, 4 subscribers, 2 publishers), an event service of the same name that is

@@ -42,7 +42,7 @@ pub enum EstimateError {
     )]
     Overflowed { sample: u64, magnitude: f64 },
     #[error(
-        "all {channels} measured channels are accelerations: the residual-force (kalman) stage cannot determine the joint deformation from accelerations alone (a constant residual force and its static deflection produce no acceleration; measured on continuous data: the spring ~100 % off with a small stated error), and the output-error stage that identifies such layouts from a stiffness scan is switched off, has no spring (`u`) term to scan, or did not lower the cost; add a displacement or velocity channel near the joint, or use `--estimator paper` on noise-free data of the model's own discretisation (README, \"Accelerometers only\")"
+        "all {channels} measured channels are accelerations: the residual-force (kalman) stage cannot determine the joint deformation from accelerations alone (a constant residual force and its static deflection produce no acceleration; measured on continuous data: the spring ~100 % off with a small stated error), and the output-error stage that identifies such layouts from a stiffness scan is switched off, has no spring (`u`) term to scan, or did not lower the cost; add a displacement or velocity channel near the joint, or use `--estimator paper` on noise-free data of the model's own discretisation (ACCURACY.md, \"Accelerometers only\")"
     )]
     AccelerationOnly { channels: usize },
     #[error(

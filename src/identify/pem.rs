@@ -6,7 +6,7 @@
 //! the measured trajectory (the estimator is `estimate::prediction_error`). Here: the
 //! choice of the model sub-steps and of the observer's process-noise force (by the
 //! innovation likelihood of the start values), and the check that the result determines
-//! the parameters. README, "Accuracy of the default estimator": "`sign(u)` by prediction
+//! the parameters. ACCURACY.md, "Accuracy of the default estimator": "`sign(u)` by prediction
 //! error".
 
 use crate::model::Model;

@@ -7,7 +7,7 @@
 //! output-error cost has no such unobserved direction, so the start comes from log-spaced
 //! stiffness and friction scans on a record prefix at each model sub-step level (and a
 //! friction × stiffness grid), grown on windows to the whole record; the answer is then
-//! checked (whole-record stiffness rescan, other starts within Δχ², probe moves). README,
+//! checked (whole-record stiffness rescan, other starts within Δχ², probe moves). ACCURACY.md,
 //! "Accuracy of the default estimator": "Accelerometers only, and mixed layouts" and
 //! "Friction without a residual-force start".
 
@@ -564,7 +564,7 @@ fn accept_converged_start(
 
 /// Steps of the whole-record stiffness check of [`rescan_whole_record`], as fractions of
 /// the answer's stiffness: −40 % … +60 % in 2.5 % steps (the whole-record basin half-width
-/// of the stiffness is 2–6 % at 2,000 samples, README "Wrong minima").
+/// of the stiffness is 2–6 % at 2,000 samples, ACCURACY.md "Wrong minima").
 const RESCAN_RANGE: [f64; 2] = [-0.4, 0.6];
 const RESCAN_STEP: f64 = 0.025;
 /// Points of the coarse whole-record stiffness check over the start scan's whole range
@@ -677,14 +677,14 @@ fn rescan_whole_record(
 
 /// Why [`identify_from_scan`] runs instead of the residual-force stage.
 pub(super) enum ScanReason {
-    /// Every channel is an acceleration (README "Accelerometers only").
+    /// Every channel is an acceleration (ACCURACY.md "Accelerometers only").
     AccelerationOnly,
     /// The residual-force stage was refused or failed before any accepted pass; the error
     /// stands when the scan-started output-error stage is not accepted either.
     ResidualForceRefused(IdentifyError),
 }
 
-/// Accelerometer-only layouts (README "Accelerometers only"): the residual-force (Kalman)
+/// Accelerometer-only layouts (ACCURACY.md "Accelerometers only"): the residual-force (Kalman)
 /// stage cannot start them — with `ü` as the only output the augmented pair (state,
 /// residual force) has an exactly unobservable eigenvalue 1 (a constant residual force and
 /// its static deflection `u_s = −K⁻¹ Lc R` produce no acceleration; PBH test, measured),

@@ -19,7 +19,7 @@
 //!
 //! `Lp` and `Lc` are non-zero only on boundary rows, so `δ = Lc_rᵀ(u_b; η)` is the same
 //! deformation as in the full model and connection terms added to `K_r`, `C_r`, `M_r` at
-//! boundary DOFs are exact. The error is the truncated interior dynamics only; the README
+//! boundary DOFs are exact. The error is the truncated interior dynamics only; the ACCURACY.md
 //! states it for the 50-element model.
 #![allow(non_snake_case)]
 

@@ -1,5 +1,5 @@
 //! `jointid live`: the pipeline over iceoryx2 (contract in [`crate::io::shm`] and the
-//! README, section "Live (iceoryx2)").
+//! docs/LIVE.md).
 //!
 //! ```text
 //! shm-sub-excitation ─┐                                                   ┌─► shm-pub-residuals
@@ -1002,7 +1002,7 @@ fn solve_online(
 
 /// How a batch-only session refits. Accelerometer-only layouts have no online fit: the
 /// residual-force (Kalman) estimator cannot determine their joint deformation (a constant
-/// residual force and its static deflection give no acceleration; README "Accelerometers
+/// residual force and its static deflection give no acceleration; ACCURACY.md "Accelerometers
 /// only, and mixed layouts"), so their parameters come from the batch identification
 /// (`identify`: the output-error stage from a stiffness scan) over the buffered first
 /// segment, run on a worker thread every `refit_every` new samples and once at the end. A

@@ -1,0 +1,80 @@
+//! Time of a whole identification (`identify`) on the paper's two-beam model: the
+//! maximum-likelihood estimator on a law linear in the state (`u`, `v`), 2,000 and 20,000
+//! samples of 8-sub-step data at 1 % noise, and the default Kalman pipeline on the shipped
+//! spring setup for comparison. `cargo bench --bench identify`; figures go to BENCHMARKS.md.
+use std::path::Path;
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use jointid::identify::{IdentifyOptions, TestData, identify};
+use jointid::setup::{EstimatorKind, Setup};
+use jointid::simulate::{Noise, Scenario, SimulateOptions, simulate};
+
+fn setup_with_basis(basis: Option<(&str, &str)>) -> Setup {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("recordings/two-beam-spring.toml");
+    let text = std::fs::read_to_string(&path).expect("setup");
+    let Some((basis, truth)) = basis else {
+        return Setup::from_toml(&text, "spring").expect("setup");
+    };
+    let n = basis.split(',').count();
+    let text: String = text
+        .lines()
+        .map(|l| {
+            let t = l.trim_start();
+            if t.starts_with("basis") {
+                format!("basis = [{basis}]\n")
+            } else if t.starts_with("initial") {
+                format!("initial = [{}]\n", vec!["0.0"; n].join(", "))
+            } else if t.starts_with("truth") {
+                format!("truth = [{truth}]\n")
+            } else {
+                format!("{l}\n")
+            }
+        })
+        .collect();
+    Setup::from_toml(&text, "spring u,v").expect("setup")
+}
+
+fn data(setup: &Setup, n: usize) -> TestData {
+    let sim = simulate(
+        setup,
+        &SimulateOptions {
+            scenario: Scenario::Random { rms: 1000.0 },
+            steps: n,
+            dt_s: setup.dt_s,
+            substeps: 8,
+            noise: Noise::Additive(0.01),
+            seed: 4,
+        },
+    )
+    .expect("simulate");
+    TestData {
+        samples: (0..n as u64).collect(),
+        t_ns: (0..n as u64).map(|i| i * 100_000).collect(),
+        excitation: sim.excitation,
+        response: sim.response,
+    }
+}
+
+fn bench_identify(c: &mut Criterion) {
+    let mut group = c.benchmark_group("identify");
+    group.sample_size(10);
+    let uv = setup_with_basis(Some(("\"u\", \"v\"", "3.0e5, 0.0")));
+    for n in [2_000, 20_000] {
+        let d = data(&uv, n);
+        let mut opts = IdentifyOptions::from_setup(&uv);
+        opts.estimator = EstimatorKind::Ml;
+        group.bench_function(format!("ml_u_v_{n}_samples"), |b| {
+            b.iter(|| identify(&uv, &d, &opts, None, &mut |_| {}, &mut |_, _| {}).expect("ml"))
+        });
+    }
+    let paper = setup_with_basis(None);
+    let d = data(&paper, 2_000);
+    let opts = IdentifyOptions::from_setup(&paper);
+    group.bench_function("kalman_paper_basis_2000_samples", |b| {
+        b.iter(|| identify(&paper, &d, &opts, None, &mut |_| {}, &mut |_, _| {}).expect("kalman"))
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench_identify);
+criterion_main!(benches);
