@@ -16,6 +16,22 @@ use jointid::pipeline::live::{self, LiveOptions, LiveReport};
 use jointid::setup::{EstimatorKind, Setup};
 use jointid::simulate::{Noise, Scenario, SimulateOptions};
 
+/// `println!` that ends the program quietly (exit 0) when stdout is a closed pipe
+/// (`jointid inspect X | head -1`) instead of panicking.
+macro_rules! println {
+    () => {
+        println!("")
+    };
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        if let Err(e) = writeln!(std::io::stdout(), $($t)*) {
+            if e.kind() == std::io::ErrorKind::BrokenPipe {
+                std::process::exit(0);
+            }
+        }
+    }};
+}
+
 #[derive(Parser)]
 #[command(
     name = "jointid",
@@ -423,10 +439,12 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     i.response_frames,
                     i.response_channels.join(", ")
                 );
-                println!(
-                    "  samples      {:?} .. {:?} ({:.6} s)",
-                    i.first_sample, i.last_sample, i.duration_s
-                );
+                match (i.first_sample, i.last_sample) {
+                    (Some(a), Some(b)) => {
+                        println!("  samples      {a} .. {b} ({:.6} s)", i.duration_s)
+                    }
+                    _ => println!("  samples      none"),
+                }
                 for (k, v) in &i.truth {
                     println!("  truth        {k} = {v}");
                 }

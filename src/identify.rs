@@ -946,15 +946,17 @@ pub fn identify(
         return Ok(result);
     }
     if !result.converged {
-        result.stop_reason = format!(
-            "not converged: reached the limit of {} passes (last change {:.3} standard errors)",
-            opts.passes,
-            result
-                .passes
-                .last()
-                .and_then(|p| p.max_change_std_errors)
-                .unwrap_or(f64::NAN)
-        );
+        let change = result.passes.last().and_then(|p| p.max_change_std_errors);
+        result.stop_reason = match change {
+            Some(c) => format!(
+                "not converged: reached the limit of {} passes (last change {c:.3} standard errors)",
+                opts.passes
+            ),
+            None => format!(
+                "not converged: reached the limit of {} pass(es), too few to measure a change (convergence needs at least 2)",
+                opts.passes
+            ),
+        };
     }
     Ok(result)
 }

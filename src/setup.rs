@@ -514,8 +514,10 @@ impl Basis {
             _ => {
                 if let Some(c) = arg("const(") {
                     let c = c?;
-                    if !c.is_finite() || c == 0.0 {
-                        return Err(format!("`{s}`: the scale must be finite and non-zero"));
+                    if !c.is_finite() || c == 0.0 || !(1e-12..=1e12).contains(&c.abs()) {
+                        return Err(format!(
+                            "`{s}`: the scale must be finite, non-zero and within 1e-12..1e12 in size (it multiplies a force parameter in N)"
+                        ));
                     }
                     Self::Const(c)
                 } else if let Some(g) = arg("gap(") {
@@ -1084,6 +1086,22 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
     if est.passes == 0 {
         return Err(bad("estimator.passes".into(), "must be at least 1".into()));
     }
+    for (key, v, min_ok) in [
+        (
+            "estimator.tolerance_std_errors",
+            est.tolerance_std_errors,
+            0.0,
+        ),
+        ("estimator.tolerance_relative", est.tolerance_relative, 0.0),
+        ("estimator.max_condition", est.max_condition, 1.0),
+    ] {
+        if !(v.is_finite() && v > min_ok) {
+            return Err(bad(
+                key.into(),
+                format!("must be a finite number > {min_ok}, got {v}"),
+            ));
+        }
+    }
     if let Some(q) = est.force_walk_std
         && !(q.is_finite() && q > 0.0)
     {
@@ -1144,6 +1162,25 @@ basis = ["u", "v"]
 [integrator]
 dt_s = 0.01
 "#;
+
+    #[test]
+    fn extreme_or_non_finite_numbers_are_errors_naming_the_key() {
+        let huge = TINY.replace(
+            "basis = [\"u\", \"v\"]",
+            "basis = [\"u\", \"const(1e308)\"]",
+        );
+        let e = Setup::from_toml(&huge, "tiny").unwrap_err().to_string();
+        assert!(e.contains("const(1e308)") && e.contains("1e12"), "{e}");
+        for (key, v) in [
+            ("max_condition", "nan"),
+            ("tolerance_relative", "inf"),
+            ("tolerance_std_errors", "-1.0"),
+        ] {
+            let text = format!("{TINY}[estimator]\n{key} = {v}\n");
+            let e = Setup::from_toml(&text, "tiny").unwrap_err().to_string();
+            assert!(e.contains(&format!("estimator.{key}")), "{key}: {e}");
+        }
+    }
 
     #[test]
     fn parses_a_minimal_setup() {

@@ -226,7 +226,16 @@ impl Stations {
 /// Rank and 2-norm condition number of a matrix (tolerance relative to the largest singular
 /// value).
 pub fn rank_and_condition(a: &DMatrix<f64>) -> (usize, f64, f64) {
-    let sv = a.clone().svd(false, false).singular_values;
+    // Bounded iterations: non-finite entries give rank 0, not a hang.
+    let Some(svd) = a
+        .iter()
+        .all(|v| v.is_finite())
+        .then(|| a.clone().try_svd(false, false, f64::EPSILON, 10_000))
+        .flatten()
+    else {
+        return (0, f64::INFINITY, 0.0);
+    };
+    let sv = svd.singular_values;
     let smax = sv.max();
     let smin = sv.min();
     let tol = smax * (a.nrows().max(a.ncols()) as f64) * f64::EPSILON * 16.0;

@@ -247,7 +247,14 @@ impl PaperEstimator {
             });
         }
         // G = (SᵀWS)⁻¹SᵀW through the SVD of W^½S (stable even when S is badly scaled).
-        let svd = ws.clone().svd(true, true);
+        let Some(svd) = ws.clone().try_svd(true, true, f64::EPSILON, 10_000) else {
+            return Err(EstimateError::RankDeficientSensitivity {
+                rank: 0,
+                needed: q,
+                stations: m,
+                condition: f64::INFINITY,
+            });
+        };
         let pinv =
             svd.pseudo_inverse(0.0)
                 .map_err(|_| EstimateError::RankDeficientSensitivity {

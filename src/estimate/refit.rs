@@ -19,6 +19,10 @@ use nalgebra::{DMatrix, DVector};
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum RefitError {
+    #[error(
+        "the parameter fit's normal equations are not finite or their SVD did not converge ({params} parameters): a basis scale or the data are out of range"
+    )]
+    SolverFailed { params: usize },
     #[error("too few usable samples: {rows} for {params} parameters")]
     TooFewRows { rows: usize, params: usize },
     #[error(
@@ -149,7 +153,16 @@ impl RecursiveLeastSquares {
             d[j] = if nrm > 0.0 { 1.0 / nrm } else { 0.0 };
         }
         let rs = DMatrix::from_fn(p, p, |i, j| self.r[(i, j)] * d[j]);
-        let svd = rs.clone().svd(true, true);
+        // Bounded: an SVD of non-finite or extreme entries (a `const(1e308)` basis) must end
+        // in an error, not spin.
+        let Some(svd) = rs
+            .iter()
+            .all(|v| v.is_finite())
+            .then(|| rs.clone().try_svd(true, true, f64::EPSILON, 10_000))
+            .flatten()
+        else {
+            return Err(RefitError::SolverFailed { params: p });
+        };
         let smax = svd.singular_values.max();
         let smin = svd.singular_values.min();
         let condition = if smin > 0.0 {

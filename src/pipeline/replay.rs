@@ -205,7 +205,14 @@ pub fn run(
     let setup = replay_setup(req.setup.as_deref(), &header, &path)?;
     let mut opts = IdentifyOptions::from_setup(&setup);
     if let Some(p) = req.passes {
-        opts.passes = p.max(1);
+        if p == 0 {
+            return Err(AppError::BadOption {
+                option: "--passes",
+                reason: "must be at least 1 (a pass is one run of Steps I–V over the record)"
+                    .into(),
+            });
+        }
+        opts.passes = p;
     }
     if let Some(k) = req.estimator {
         opts.estimator = k;
