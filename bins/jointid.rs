@@ -144,6 +144,38 @@ enum Command {
         /// Switch the output-error refinement off (the Kalman pipeline's last stage).
         #[arg(long)]
         no_refine: bool,
+        /// Write SVG plots here: force–deformation loops with the identified law, measured
+        /// against predicted response with fit %, parameters per pass.
+        #[arg(long, value_name = "DIR")]
+        plots: Option<PathBuf>,
+    },
+    /// Convert a CSV file of a test (a time column, one column per excitation channel and
+    /// sensor of the setup, named as in the setup) into a recording with the setup attached.
+    #[command(
+        after_help = "Example:\n  jointid import test.csv --setup recordings/two-beam-spring.toml --out test.mcap\n  jointid replay test.mcap --plots plots/"
+    )]
+    Import {
+        csv: PathBuf,
+        /// The setup the data belong to (attached to the recording).
+        #[arg(long)]
+        setup: PathBuf,
+        /// The recording to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// Name of the time column, in seconds (default: t, time, t_s or time_s).
+        #[arg(long)]
+        time_column: Option<String>,
+        /// Sample interval (s) for a file without a time column (default: the setup's dt_s).
+        #[arg(long)]
+        dt: Option<f64>,
+        /// Field delimiter, one character (default: detected from the header).
+        #[arg(long)]
+        delimiter: Option<char>,
+        #[arg(long, value_enum, default_value = "binary")]
+        encoding: EncodingArg,
+        /// Print the summary as JSON.
+        #[arg(long)]
+        json: bool,
     },
     /// Export a setup's component model as Matrix Market (M, K, C), a DOF map and a setup
     /// that uses them.
@@ -310,6 +342,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             json,
             strict,
             no_refine,
+            plots,
         } => {
             let req = ReplayRequest {
                 recording,
@@ -324,6 +357,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 forgetting,
                 track_every,
                 no_refine,
+                plots,
             };
             let bar = ProgressBar::new(0);
             bar.set_style(
@@ -356,6 +390,15 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 println!("{}", serde_json::to_string_pretty(&outcome.to_json())?);
             } else {
                 print_table(&outcome);
+                if let Some(p) = &outcome.plots {
+                    println!("plots: {} files", p.files.len());
+                    for (sensor, fit) in &p.fit_percent {
+                        println!("  predicted {sensor}: fit {fit:.1} %");
+                    }
+                    for note in &p.notes {
+                        println!("  note: {note}");
+                    }
+                }
             }
             if let Some(e) = &outcome.input_error {
                 anyhow::bail!(
@@ -373,6 +416,53 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     inadequate.len(),
                     inadequate.join("; ")
                 );
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Import {
+            csv,
+            setup,
+            out,
+            time_column,
+            dt,
+            delimiter,
+            encoding,
+            json,
+        } => {
+            let s = Setup::from_file(&setup)?;
+            let delimiter = match delimiter {
+                None => None,
+                Some(c) if c.is_ascii() => Some(c as u8),
+                Some(c) => anyhow::bail!("--delimiter: {c:?} is not a single-byte character"),
+            };
+            let opts = jointid::io::csv::ImportOptions {
+                time_column,
+                dt_s: dt,
+                delimiter,
+                encoding: Some(match encoding {
+                    EncodingArg::Json => FrameEncoding::Json,
+                    EncodingArg::Binary => FrameEncoding::Binary,
+                }),
+            };
+            let summary = jointid::io::csv::import_csv(&s, &csv, &out, &opts)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&summary)?);
+            } else {
+                println!(
+                    "wrote {}: {} samples at dt = {:e} s (from the {}){}",
+                    summary.out.display(),
+                    summary.samples,
+                    summary.dt_s,
+                    summary.dt_from,
+                    if summary.setup_dt_replaced {
+                        "; the attached setup's dt_s was set to the data's interval"
+                    } else {
+                        ""
+                    }
+                );
+                if !summary.ignored_columns.is_empty() {
+                    println!("ignored columns: {}", summary.ignored_columns.join(", "));
+                }
             }
             Ok(ExitCode::SUCCESS)
         }
@@ -458,10 +548,14 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     println!("  ERROR        {e}");
                 }
             }
-            Ok(if i.error.is_some() {
-                ExitCode::FAILURE
-            } else {
-                ExitCode::SUCCESS
+            // The summary above holds what was read before the error; the error itself
+            // goes to stderr like every other command's.
+            Ok(match &i.error {
+                Some(e) => {
+                    eprintln!("error: {e}");
+                    ExitCode::FAILURE
+                }
+                None => ExitCode::SUCCESS,
             })
         }
     }

@@ -51,6 +51,8 @@ pub enum AppError {
         samples: usize,
         cause: String,
     },
+    #[error(transparent)]
+    Report(#[from] crate::report::ReportError),
     #[error("{option}: {reason}")]
     BadOption {
         option: &'static str,
@@ -77,7 +79,34 @@ pub fn error_line(e: &(dyn std::error::Error + 'static)) -> String {
         }
         cause = c.source();
     }
-    line
+    one_line(&line)
+}
+
+/// `text` on one line: terminal colour codes and box-drawing decoration (which some
+/// dependencies' parse errors carry) removed, every run of white space one space.
+pub fn one_line(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    let mut chars = text.chars().peekable();
+    while let Some(c) = chars.next() {
+        if c == '\u{1b}' {
+            // CSI sequence: ESC [ parameters final-byte.
+            if chars.peek() == Some(&'[') {
+                chars.next();
+                for d in chars.by_ref() {
+                    if ('@'..='~').contains(&d) {
+                        break;
+                    }
+                }
+            }
+            continue;
+        }
+        if ('\u{2500}'..='\u{257f}').contains(&c) {
+            continue;
+        }
+        out.push(if c.is_whitespace() { ' ' } else { c });
+    }
+    let out = out.replace("Backtrace", " ");
+    out.split_whitespace().collect::<Vec<_>>().join(" ")
 }
 
 pub fn excitation_channels(setup: &Setup) -> ChannelInfo {
@@ -120,7 +149,7 @@ pub fn simulate_recording(
     let mut setup_text = setup.toml_text.clone();
     if (opts.dt_s - setup.dt_s).abs() > 1e-12 * setup.dt_s {
         // Keep the attached setup true to the data: the replay reads dt_s from it.
-        setup_text = replace_dt(&setup_text, opts.dt_s);
+        setup_text = crate::io::csv::replace_dt(&setup_text, opts.dt_s);
     }
     w.attach_setup(&setup_text)?;
     let truth: BTreeMap<String, f64> = setup
@@ -181,19 +210,6 @@ pub fn simulate_recording(
     })
 }
 
-fn replace_dt(text: &str, dt: f64) -> String {
-    text.lines()
-        .map(|l| {
-            if l.trim_start().starts_with("dt_s") {
-                format!("dt_s = {dt:e}")
-            } else {
-                l.to_string()
-            }
-        })
-        .collect::<Vec<_>>()
-        .join("\n")
-}
-
 /// What `replay` is asked to do.
 #[derive(Debug, Clone, Default)]
 pub struct ReplayRequest {
@@ -209,6 +225,8 @@ pub struct ReplayRequest {
     pub track_every: Option<usize>,
     /// Switch the output-error refinement of the Kalman pipeline off (`--no-refine`).
     pub no_refine: bool,
+    /// Write SVG plots here (`--plots DIR`, see [`crate::report`]).
+    pub plots: Option<PathBuf>,
 }
 
 /// What `replay` found.
@@ -224,6 +242,8 @@ pub struct ReplayOutcome {
     /// it, and the command exits with an error after writing its outputs.
     pub input_error: Option<String>,
     pub output: Option<PathBuf>,
+    /// The plots written (`--plots`), with the fit of the predicted response.
+    pub plots: Option<crate::report::PlotSummary>,
 }
 
 impl ReplayOutcome {
@@ -247,6 +267,7 @@ impl ReplayOutcome {
             "input_warnings": self.input_warnings,
             "input_error": self.input_error,
             "output": self.output,
+            "plots": self.plots,
             "track": id.track,
             "pass_reports": id.passes,
         })

@@ -37,6 +37,7 @@ pub mod io;
 pub mod matrix_market;
 pub mod model;
 pub mod pipeline;
+pub mod report;
 pub mod setup;
 pub mod simulate;
 pub mod sparse;

@@ -71,12 +71,19 @@ impl Triplets {
     }
 }
 
+/// Largest matrix dimension accepted: far beyond what a dense or modal step can use, small
+/// enough that sizes computed from it cannot overflow.
+pub const MAX_DIMENSION: usize = 10_000_000;
+
 /// Read a Matrix Market file (see the module docs for what is accepted).
 pub fn read_matrix(path: &Path) -> Result<Triplets, MatrixMarketError> {
-    let text = std::fs::read_to_string(path).map_err(|error| MatrixMarketError::Io {
-        path: path.to_path_buf(),
-        error,
-    })?;
+    let text =
+        crate::io::read_text_capped(path, crate::io::MAX_MODEL_FILE_BYTES).map_err(|error| {
+            MatrixMarketError::Io {
+                path: path.to_path_buf(),
+                error,
+            }
+        })?;
     parse_matrix(&text, path)
 }
 
@@ -152,6 +159,12 @@ pub fn parse_matrix(text: &str, path: &Path) -> Result<Triplets, MatrixMarketErr
     }
     let nrows = parse_usize(nums[0], size_line)?;
     let ncols = parse_usize(nums[1], size_line)?;
+    if nrows > MAX_DIMENSION || ncols > MAX_DIMENSION {
+        return Err(syntax(
+            size_line,
+            format!("{nrows} × {ncols} exceeds the largest supported model ({MAX_DIMENSION} DOFs)"),
+        ));
+    }
     if symmetric && nrows != ncols {
         return Err(syntax(
             size_line,
@@ -329,10 +342,13 @@ fn parse_dir(s: &str) -> Option<Dir> {
 
 /// Read a DOF map: the label of each matrix row, in row order (0-based index = row − 1).
 pub fn read_dof_map(path: &Path) -> Result<Vec<DofRef>, MatrixMarketError> {
-    let text = std::fs::read_to_string(path).map_err(|error| MatrixMarketError::Io {
-        path: path.to_path_buf(),
-        error,
-    })?;
+    let text =
+        crate::io::read_text_capped(path, crate::io::MAX_MODEL_FILE_BYTES).map_err(|error| {
+            MatrixMarketError::Io {
+                path: path.to_path_buf(),
+                error,
+            }
+        })?;
     parse_dof_map(&text, path)
 }
 

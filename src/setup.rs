@@ -659,19 +659,37 @@ pub struct Setup {
     pub external: Option<std::sync::Arc<crate::matrix_market::ExternalModel>>,
 }
 
+/// A TOML error as one line, `line L, column C: message` (the toml crate's own text quotes
+/// the source over several lines).
+fn one_line_toml_error(text: &str, e: &toml::de::Error) -> String {
+    let message = e.message().trim().replace('\n', " ");
+    match e.span() {
+        Some(span) => {
+            let before = text.get(..span.start).unwrap_or(text);
+            let line = before.matches('\n').count() + 1;
+            let column = before.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
+            format!("TOML parse error at line {line}, column {column}: {message}")
+        }
+        None => format!("TOML parse error: {message}"),
+    }
+}
+
 impl Setup {
     pub fn from_file(path: &Path) -> Result<Self, SetupError> {
-        let text = std::fs::read_to_string(path).map_err(|source| SetupError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let text =
+            crate::io::read_text_capped(path, crate::io::MAX_SETUP_BYTES).map_err(|source| {
+                SetupError::Io {
+                    path: path.to_path_buf(),
+                    source,
+                }
+            })?;
         Self::from_toml(&text, &path.display().to_string())
     }
 
     pub fn from_toml(text: &str, origin: &str) -> Result<Self, SetupError> {
         let raw: SetupFile = toml::from_str(text).map_err(|e| SetupError::Parse {
             origin: origin.to_string(),
-            message: e.to_string().trim_end().to_string(),
+            message: one_line_toml_error(text, &e),
         })?;
         validate(raw, text, origin)
     }

@@ -251,11 +251,19 @@ pub fn rank_and_condition(a: &DMatrix<f64>) -> (usize, f64, f64) {
     )
 }
 
-/// Spectral radius of a square matrix.
+/// Spectral radius of a square matrix; `+∞` when it cannot be computed (non-finite entries,
+/// or the Schur iteration not converging in 10,000 sweeps on a wildly scaled matrix), which
+/// every caller reads as "unstable".
 pub fn spectral_radius(a: &DMatrix<f64>) -> f64 {
-    a.clone()
-        .complex_eigenvalues()
-        .iter()
-        .map(|z| z.norm())
-        .fold(0.0, f64::max)
+    if !a.iter().all(|x| x.is_finite()) {
+        return f64::INFINITY;
+    }
+    match a.clone().try_schur(f64::EPSILON, 10_000) {
+        Some(schur) => schur
+            .complex_eigenvalues()
+            .iter()
+            .map(|z| z.norm())
+            .fold(0.0, f64::max),
+        None => f64::INFINITY,
+    }
 }

@@ -57,7 +57,7 @@
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::fs::{self, File};
-use std::io::{BufReader, BufWriter, Read};
+use std::io::{BufReader, BufWriter, Read, Seek};
 use std::path::{Path, PathBuf};
 
 use ::mcap::records::{self, MessageHeader, Metadata, Record, op};
@@ -101,7 +101,11 @@ pub const RECORDING_METADATA: &str = "jointid.recording";
 
 /// Largest chunk (compressed or decompressed) the reader accepts, so a corrupt size field
 /// cannot make it allocate without bound.
-const CHUNK_SIZE_LIMIT: usize = 1 << 30;
+/// Largest chunk (uncompressed) or record accepted: writers use ~1 MiB chunks; a corrupt
+/// size field must not make a small file allocate gigabytes.
+const CHUNK_SIZE_LIMIT: usize = 128 << 20;
+/// Largest summary section read to find the chunk index (tens of bytes per chunk).
+const SUMMARY_SIZE_LIMIT: u64 = 64 << 20;
 /// Opcode and record length in front of every MCAP record.
 const RECORD_PREFIX_LEN: u64 = 9;
 
@@ -927,15 +931,49 @@ impl FrameStream {
                     offset,
                     opcode,
                     bytes,
-                } => self.pending = read_records(&self.header.path, offset, opcode, &bytes)?,
+                } => match read_records(&self.header.path, offset, opcode, &bytes) {
+                    Ok(records) => self.pending = records,
+                    // A damaged chunk (CRC, corrupt records) in a file with a chunk index:
+                    // skip to the next indexed chunk and say so; without an index it ends
+                    // the read with the error.
+                    Err(err @ (McapIoError::ChunkCrc { .. } | McapIoError::Corrupt { .. }))
+                        if opcode == op::CHUNK =>
+                    {
+                        let why = match &err {
+                            McapIoError::ChunkCrc {
+                                saved, calculated, ..
+                            } => format!("CRC stored {saved:#010x}, computed {calculated:#010x}"),
+                            McapIoError::Corrupt { source, .. } => source.to_string(),
+                            other => other.to_string(),
+                        };
+                        if !self.walker.resume_after_damaged_chunk(offset, &why)? {
+                            return Err(err);
+                        }
+                    }
+                    Err(err) => return Err(err),
+                },
                 Top::PartialChunk { bytes } => self.pending = salvage_partial_chunk(&bytes),
                 Top::SkippedChunk => {}
                 Top::End(truncation) => {
-                    self.damage = truncation.map(|t| self.describe_damage(&t));
+                    let mut notes = std::mem::take(&mut self.walker.skipped);
+                    if let Some(t) = truncation {
+                        notes.push(self.describe_damage(&t));
+                    } else if !notes.is_empty() {
+                        notes.push(self.describe_recovered());
+                    }
+                    self.damage = (!notes.is_empty()).then(|| notes.join("; "));
                     return Ok(None);
                 }
             }
         }
+    }
+
+    fn describe_recovered(&self) -> String {
+        let [exc, resp] = self.progress;
+        format!(
+            "recovered {} excitation and {} response frames (the skipped chunks' samples are missing)",
+            exc.count, resp.count
+        )
     }
 
     fn describe_damage(&self, t: &Truncation) -> String {
@@ -1301,6 +1339,11 @@ struct Walker {
     len: u64,
     in_summary: bool,
     ending: Option<Option<Truncation>>,
+    /// Start offsets of the chunks listed in the file's summary (chunk indexes), sorted;
+    /// empty when the file has no readable summary. Used to resume after a damaged chunk.
+    chunk_starts: Vec<u64>,
+    /// One line per damaged chunk skipped by way of the chunk index.
+    skipped: Vec<String>,
 }
 
 impl Walker {
@@ -1314,12 +1357,46 @@ impl Walker {
             len,
             in_summary: false,
             ending: None,
+            chunk_starts: Vec::new(),
+            skipped: Vec::new(),
         };
         let magic = walker.read_magic()?;
         if magic.as_deref() != Some(::mcap::MAGIC) {
             return Err(mcap_error(path)(McapError::BadMagic));
         }
+        walker.chunk_starts = indexed_chunk_starts(path, len).unwrap_or_default();
         Ok(walker)
+    }
+
+    /// After the chunk at `offset` proved unreadable (`why`): moves to the next chunk the
+    /// summary's index lists after it and notes what was skipped. `false` (nothing moved)
+    /// when the file has no index or no later chunk.
+    fn resume_after_damaged_chunk(&mut self, offset: u64, why: &str) -> Result<bool, McapIoError> {
+        let Some(&next) = self.chunk_starts.iter().find(|&&start| start > offset) else {
+            // The last chunk, already read whole: the walk goes on after it.
+            if self.chunk_starts.contains(&offset) && self.pos > offset {
+                self.skipped.push(format!(
+                    "chunk at byte {offset} (the last of {}) is damaged ({why}): skipped",
+                    self.chunk_starts.len()
+                ));
+                return Ok(true);
+            }
+            return Ok(false);
+        };
+        if next >= self.len {
+            return Ok(false);
+        }
+        let later = self.chunk_starts.iter().filter(|&&s| s >= next).count();
+        self.skipped.push(format!(
+            "chunk at byte {offset} is damaged ({why}): skipped {} bytes to the next indexed chunk at byte {next} ({later} of {} chunks follow)",
+            next - offset,
+            self.chunk_starts.len()
+        ));
+        self.file
+            .seek(std::io::SeekFrom::Start(next))
+            .map_err(io_error(&self.path))?;
+        self.pos = next;
+        Ok(true)
     }
 
     /// The next 8 bytes, or `None` if the file has fewer left.
@@ -1403,6 +1480,16 @@ impl Walker {
             let body_len = u64::from_le_bytes(len);
             let available = remaining - RECORD_PREFIX_LEN;
             if body_len > available {
+                if opcode == op::CHUNK
+                    && !self.in_summary
+                    && self.chunk_starts.iter().any(|&start| start > offset)
+                    && self.resume_after_damaged_chunk(
+                        offset,
+                        &format!("{body_len} bytes declared, {available} left in the file"),
+                    )?
+                {
+                    continue;
+                }
                 if opcode == op::CHUNK && !self.in_summary {
                     let what = if body_len == u64::MAX {
                         format!(
@@ -1469,6 +1556,49 @@ impl Walker {
             });
         }
     }
+}
+
+/// The chunk start offsets listed by the summary's chunk indexes (sorted), read from the
+/// footer's `summary_start`; `None` when the file has no usable summary (an unfinished or
+/// damaged file), which only means there is no way past a damaged chunk.
+fn indexed_chunk_starts(path: &Path, len: u64) -> Option<Vec<u64>> {
+    // Footer record: opcode, length (20), summary start, summary offset start, CRC; magic.
+    const FOOTER_RECORD: u64 = 1 + 8 + 20;
+    let footer_at = len.checked_sub(FOOTER_RECORD + 8)?;
+    let mut file = File::open(path).ok()?;
+    file.seek(std::io::SeekFrom::Start(footer_at)).ok()?;
+    let mut footer = [0u8; (FOOTER_RECORD + 8) as usize];
+    file.read_exact(&mut footer).ok()?;
+    if footer[0] != op::FOOTER || &footer[FOOTER_RECORD as usize..] != ::mcap::MAGIC {
+        return None;
+    }
+    let summary_start = u64::from_le_bytes(footer[9..17].try_into().ok()?);
+    if summary_start == 0
+        || summary_start >= footer_at
+        || footer_at - summary_start > SUMMARY_SIZE_LIMIT
+    {
+        return None;
+    }
+    file.seek(std::io::SeekFrom::Start(summary_start)).ok()?;
+    let mut summary = vec![0u8; (footer_at - summary_start) as usize];
+    file.read_exact(&mut summary).ok()?;
+    let mut starts = Vec::new();
+    let mut rest = summary.as_slice();
+    while rest.len() >= RECORD_PREFIX_LEN as usize {
+        let opcode = rest[0];
+        let body_len = usize::try_from(u64::from_le_bytes(rest[1..9].try_into().ok()?)).ok()?;
+        let body = rest.get(9..9usize.checked_add(body_len)?)?;
+        if opcode == op::CHUNK_INDEX
+            && let Ok(Record::ChunkIndex(index)) = ::mcap::parse_record(opcode, body)
+            && index.chunk_start_offset < summary_start
+        {
+            starts.push(index.chunk_start_offset);
+        }
+        rest = &rest[9 + body_len..];
+    }
+    starts.sort_unstable();
+    starts.dedup();
+    Some(starts)
 }
 
 fn opcode_name(opcode: u8) -> String {

@@ -306,10 +306,21 @@ pub fn run(
         input_warnings: stage.input_warnings,
         input_error: stage.input_error,
         output: None,
+        plots: None,
     };
     if let Some(out) = &req.out {
         crate::app::write_results(out, &setup, &header, &stage.data, &outcome, &last_pass)?;
         outcome.output = Some(out.clone());
+    }
+    if let Some(dir) = &req.plots {
+        outcome.plots = Some(crate::report::write_plots(
+            dir,
+            &setup,
+            &stage.data,
+            &outcome.identification,
+            &last_pass,
+            &header.truth,
+        )?);
     }
     Ok(outcome)
 }

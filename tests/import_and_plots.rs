@@ -1,0 +1,235 @@
+//! A test campaign's CSV → `jointid import` → `jointid replay --plots`: the real binary, the
+//! identified parameters against the truth, and plots that hold the data.
+
+mod common;
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use common::{ok, repo, run};
+use jointid::io::mcap::read_recording;
+
+/// Writes a recording's samples as CSV: `t` (s, starting at `t0_s`), the columns in a
+/// shuffled order with an unrelated column between them, `delimiter` between fields.
+fn recording_to_csv(mcap: &Path, csv: &Path, t0_s: f64, with_time: bool, delimiter: char) {
+    let rec = read_recording(mcap).expect("simulated recording");
+    let mut names: Vec<(bool, usize, String)> = Vec::new();
+    for (j, n) in rec.response_channels.names.iter().enumerate().rev() {
+        names.push((false, j, n.clone()));
+    }
+    for (j, n) in rec.excitation_channels.names.iter().enumerate() {
+        names.insert(3, (true, j, n.clone()));
+    }
+    let mut text = String::from("# exported by the acquisition system\n");
+    let mut header: Vec<String> = Vec::new();
+    if with_time {
+        header.push("t".into());
+    }
+    header.push("temperature".into());
+    header.extend(names.iter().map(|(_, _, n)| n.clone()));
+    writeln!(text, "{}", header.join(&delimiter.to_string())).unwrap();
+    let dt = 1e-4;
+    for (i, (e, r)) in rec.excitation.iter().zip(&rec.response).enumerate() {
+        let mut row: Vec<String> = Vec::new();
+        if with_time {
+            row.push(format!("{:?}", t0_s + i as f64 * dt));
+        }
+        row.push("21.5".into());
+        for (is_exc, j, _) in &names {
+            let v = if *is_exc { e.values[*j] } else { r.values[*j] };
+            row.push(format!("{v:?}"));
+        }
+        writeln!(text, "{}", row.join(&delimiter.to_string())).unwrap();
+    }
+    std::fs::write(csv, text).unwrap();
+}
+
+#[test]
+fn csv_import_replay_and_plots_recover_the_spring() {
+    let dir = tempfile::tempdir().unwrap();
+    let setup = repo("recordings/two-beam-spring.toml");
+    let setup = setup.to_str().unwrap();
+    let sim = dir.path().join("sim.mcap");
+    ok(&[
+        "simulate",
+        setup,
+        "--out",
+        sim.to_str().unwrap(),
+        "--scenario",
+        "random",
+        "--steps",
+        "1500",
+        "--seed",
+        "21",
+    ]);
+    let csv = dir.path().join("test.csv");
+    recording_to_csv(&sim, &csv, 12.5, true, ',');
+    let imported = dir.path().join("imported.mcap");
+    let printed = ok(&[
+        "import",
+        csv.to_str().unwrap(),
+        "--setup",
+        setup,
+        "--out",
+        imported.to_str().unwrap(),
+    ]);
+    assert!(printed.contains("1500 samples"), "{printed}");
+    assert!(
+        printed.contains("ignored columns: temperature"),
+        "{printed}"
+    );
+
+    let plots = dir.path().join("plots");
+    let v: serde_json::Value = serde_json::from_str(&ok(&[
+        "replay",
+        imported.to_str().unwrap(),
+        "--plots",
+        plots.to_str().unwrap(),
+        "--json",
+    ]))
+    .unwrap();
+    // Noise-free data from the model's own discretisation: the stiffness is exact.
+    let params = v["parameters"].as_array().unwrap();
+    let u = params
+        .iter()
+        .find(|p| p["basis"] == "u")
+        .expect("u parameter");
+    let k = u["value"].as_f64().unwrap();
+    assert!((k - 3.0e5).abs() < 3.0, "stiffness {k} against 3e5");
+
+    // Every plot exists, is SVG, and carries the data (one mark per sample, thinned).
+    let files = v["plots"]["files"].as_array().unwrap();
+    assert_eq!(
+        files.len(),
+        2 + 12 + 1,
+        "two loops (with and without the stiffness), twelve responses, parameters"
+    );
+    for f in files {
+        let path = Path::new(f.as_str().unwrap());
+        let text = std::fs::read_to_string(path).unwrap();
+        assert!(text.starts_with("<svg"), "{}", path.display());
+        let name = path.file_name().unwrap().to_str().unwrap();
+        let marks = text.matches("<circle").count() + text.matches("<polyline").count();
+        match name {
+            n if n.starts_with("loop-") => assert!(marks >= 2 * 1500, "{n}: {marks} marks"),
+            n if n.starts_with("response-") => assert!(marks >= 2, "{n}: {marks} lines"),
+            _ => assert!(text.len() > 5_000, "{name}: {} bytes", text.len()),
+        }
+    }
+    assert!(plots.join("loop-joint6.svg").exists());
+    assert!(plots.join("response-node1.disp.svg").exists());
+    // The identified model predicts the measured response from the excitation alone.
+    let fits = v["plots"]["fit_percent"].as_object().unwrap();
+    assert_eq!(fits.len(), 12);
+    for (sensor, fit) in fits {
+        let fit = fit.as_f64().unwrap();
+        assert!(fit > 99.0, "{sensor}: fit {fit} %");
+    }
+}
+
+#[test]
+fn csv_without_time_column_semicolons_and_bad_values_are_handled() {
+    let dir = tempfile::tempdir().unwrap();
+    let setup = repo("recordings/two-beam-spring.toml");
+    let setup = setup.to_str().unwrap();
+    let sim = dir.path().join("sim.mcap");
+    ok(&[
+        "simulate",
+        setup,
+        "--out",
+        sim.to_str().unwrap(),
+        "--scenario",
+        "random",
+        "--steps",
+        "50",
+        "--seed",
+        "3",
+    ]);
+    let csv = dir.path().join("no-time.csv");
+    recording_to_csv(&sim, &csv, 0.0, false, ';');
+    let out = dir.path().join("no-time.mcap");
+    let printed = ok(&[
+        "import",
+        csv.to_str().unwrap(),
+        "--setup",
+        setup,
+        "--out",
+        out.to_str().unwrap(),
+        "--dt",
+        "2e-4",
+    ]);
+    assert!(printed.contains("50 samples"), "{printed}");
+    assert!(printed.contains("dt_s was set"), "{printed}");
+    let rec = read_recording(&out).unwrap();
+    assert!(rec.setup_toml.unwrap().contains("dt_s = 2e-4"));
+    assert_eq!(rec.response[49].t_ns, 49 * 200_000);
+
+    // A bad value: the error names the file, the line and the column; no recording is left.
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let mut lines: Vec<String> = text.lines().map(str::to_string).collect();
+    lines[10] = lines[10].replacen("21.5;", "21.5;n/a", 1);
+    let bad = dir.path().join("bad.csv");
+    std::fs::write(&bad, lines.join("\n")).unwrap();
+    let bad_out = dir.path().join("bad.mcap");
+    let o = run(&[
+        "import",
+        bad.to_str().unwrap(),
+        "--setup",
+        setup,
+        "--out",
+        bad_out.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("bad.csv") && err.contains("line 11"), "{err}");
+    assert!(!bad_out.exists(), "no half-written recording");
+
+    // A missing channel column is named with the columns that are there.
+    let missing = dir.path().join("missing.csv");
+    std::fs::write(&missing, "t,node1.force\n0,1\n0.0001,2\n").unwrap();
+    let o = run(&[
+        "import",
+        missing.to_str().unwrap(),
+        "--setup",
+        setup,
+        "--out",
+        dir.path().join("m.mcap").to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("node1.disp") && err.contains("columns: t, node1.force"),
+        "{err}"
+    );
+
+    // Uneven sampling is refused with the row.
+    let uneven = dir.path().join("uneven.csv");
+    let mut text = String::from("t");
+    let rec = read_recording(&sim).unwrap();
+    for n in rec
+        .excitation_channels
+        .names
+        .iter()
+        .chain(&rec.response_channels.names)
+    {
+        text.push(',');
+        text.push_str(n);
+    }
+    text.push('\n');
+    for (i, t) in [0.0, 1e-4, 2e-4, 3.5e-4].iter().enumerate() {
+        let _ = i;
+        text.push_str(&format!("{t}{}\n", ",0".repeat(13)));
+    }
+    std::fs::write(&uneven, text).unwrap();
+    let o = run(&[
+        "import",
+        uneven.to_str().unwrap(),
+        "--setup",
+        setup,
+        "--out",
+        dir.path().join("u.mcap").to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("line 5") && err.contains("even grid"), "{err}");
+}
