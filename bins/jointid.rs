@@ -1,6 +1,7 @@
 //! `jointid`: command line. Parses arguments, calls the library (`jointid::app`), prints,
 //! and turns errors into a one-line cause and a non-zero exit code.
 
+use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -572,6 +573,7 @@ fn live(setup: &Setup, o: LiveOptions, json: bool) -> Result<ExitCode> {
         .create::<ipc::Service>()
         .map_err(|e| anyhow::anyhow!("iceoryx2 node for signal handling: {e:?}"))?;
     let stop = Arc::clone(&o.stop);
+    let labels_setup = setup;
     let setup = setup.clone();
     let worker = std::thread::spawn(move || {
         let mut progress = |r: &LiveReport| {
@@ -590,7 +592,38 @@ fn live(setup: &Setup, o: LiveOptions, json: bool) -> Result<ExitCode> {
         .join()
         .map_err(|_| anyhow::anyhow!("the live session panicked"))??;
     if json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
+        // The report, with `version` and `parameters` in the same shape as `replay --json`.
+        let mut v = serde_json::to_value(&report)?;
+        if let Some(obj) = v.as_object_mut() {
+            let labels = jointid::io::contract::parameter_labels(labels_setup);
+            let truth = BTreeMap::new();
+            let finals = report.final_parameters();
+            let values: Vec<f64> = labels
+                .iter()
+                .map(|l| {
+                    finals
+                        .iter()
+                        .find(|p| p.key == l.0)
+                        .map_or(f64::NAN, |p| p.value)
+                })
+                .collect();
+            let errors: Vec<f64> = labels
+                .iter()
+                .map(|l| {
+                    finals
+                        .iter()
+                        .find(|p| p.key == l.0)
+                        .map_or(f64::NAN, |p| p.std_error)
+                })
+                .collect();
+            let params = jointid::io::contract::parameters(labels_setup, &values, &errors, &truth);
+            obj.insert(
+                "version".into(),
+                jointid::io::contract::CONTRACT_VERSION.into(),
+            );
+            obj.insert("parameters".into(), serde_json::to_value(params)?);
+        }
+        println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         eprintln!();
         for w in &report.warnings {

@@ -11,6 +11,10 @@ use serde_json::json;
 use crate::align::AlignError;
 use crate::estimate::StepOutput;
 use crate::identify::{Identification, PassReport};
+use crate::io::contract::{
+    self, CONTRACT_VERSION, LOG_TOPIC, LogLevel, LogMsg, PREDICTED_TOPIC, ParametersKind, Source,
+    Time,
+};
 use crate::io::mcap::{
     ChannelInfo, DIAGNOSTICS_TOPIC, McapIoError, PARAMETERS_TOPIC, RECORDING_METADATA,
     RESIDUALS_TOPIC, RecordingWriter, STATES_TOPIC, TRACK_TOPIC, TRUTH_METADATA, stream_frames,
@@ -253,10 +257,11 @@ impl ReplayOutcome {
     pub fn to_json(&self) -> serde_json::Value {
         let id = &self.identification;
         json!({
+            "version": CONTRACT_VERSION,
             "recording": self.recording,
             "samples": self.samples,
             "estimator": id.estimator,
-            "parameters": id.final_parameters().unwrap_or(&[]),
+            "parameters": contract::parameters_from_estimates(id.final_parameters().unwrap_or(&[])),
             "passes": id.passes.len(),
             "converged": id.converged,
             "stop_reason": id.stop_reason,
@@ -292,68 +297,6 @@ pub fn replay(
 }
 
 /// JSON Schemas of the output topics, so Foxglove and other tools can read them.
-fn residual_schema() -> serde_json::Value {
-    json!({
-        "type": "object",
-        "title": "jointid.Residuals",
-        "properties": {
-            "sample": {"type": "integer"}, "t_ns": {"type": "integer"}, "pass": {"type": "integer"},
-            "connections": {"type": "array", "items": {"type": "string"}},
-            "residual": {"type": "array", "items": {"type": "number"}, "description": "R = f − f̂ per connection, N"},
-            "force": {"type": "array", "items": {"type": "number"}, "description": "total connection force f, N, positive resisting"}
-        }
-    })
-}
-
-fn states_schema() -> serde_json::Value {
-    json!({
-        "type": "object",
-        "title": "jointid.ConnectionStates",
-        "properties": {
-            "sample": {"type": "integer"}, "t_ns": {"type": "integer"}, "pass": {"type": "integer"},
-            "delta": {"type": "array", "items": {"type": "number"}, "description": "deformation δ, m"},
-            "delta_v": {"type": "array", "items": {"type": "number"}, "description": "rate δ̇, m/s"},
-            "delta_a": {"type": "array", "items": {"type": "number"}, "description": "acceleration δ̈, m/s²"}
-        }
-    })
-}
-
-fn parameters_schema() -> serde_json::Value {
-    json!({
-        "type": "object",
-        "title": "jointid.Parameters",
-        "properties": {
-            "pass": {"type": "integer"},
-            "final": {"type": "boolean"},
-            "converged": {"type": "boolean"},
-            "parameters": {"type": "array", "items": {"type": "object", "properties": {
-                "connection": {"type": "string"}, "basis": {"type": "string"}, "unit": {"type": "string"},
-                "value": {"type": "number"}, "std_error": {"type": "number"},
-                "ci95": {"type": "array", "items": {"type": "number"}}, "truth": {"type": "number"}
-            }}}
-        }
-    })
-}
-
-fn track_schema() -> serde_json::Value {
-    json!({
-        "type": "object",
-        "title": "jointid.Track",
-        "properties": {
-            "sample": {"type": "integer"}, "t_ns": {"type": "integer"},
-            "forgetting": {"type": "number", "description": "forgetting factor per sample"},
-            "keys": {"type": "array", "items": {"type": "string"}},
-            "parameters": {"type": "array", "items": {"type": ["object", "null"], "properties": {
-                "value": {"type": "number"}, "std_error": {"type": "number"}}}},
-            "unsolved": {"type": "array", "items": {"type": "string"}}
-        }
-    })
-}
-
-fn diagnostics_schema() -> serde_json::Value {
-    json!({"type": "object", "title": "jointid.Diagnostics"})
-}
-
 pub(crate) fn write_results(
     out: &Path,
     setup: &Setup,
@@ -403,7 +346,8 @@ pub(crate) fn write_results(
             values: data.response[i].clone(),
         })?;
     }
-    let (rs, ss) = (residual_schema(), states_schema());
+    let connections: Vec<String> = names;
+    let v = |x: &nalgebra::DVector<f64>| x.iter().copied().collect::<Vec<f64>>();
     for (pass, o) in last_pass {
         // Samples are consecutive from `first`, so the time is found by offset.
         let idx = (o.sample - first) as usize;
@@ -412,50 +356,111 @@ pub(crate) fn write_results(
             .get(idx)
             .copied()
             .unwrap_or_else(|| t_of(o.sample));
-        let v = |x: &nalgebra::DVector<f64>| x.iter().copied().collect::<Vec<f64>>();
-        w.write_output(
+        contract::write(
+            &mut w,
             RESIDUALS_TOPIC,
-            "jointid.Residuals",
-            &rs,
             t,
-            &json!({"sample": o.sample, "t_ns": t, "pass": pass, "connections": names,
-                    "residual": v(&o.residual), "force": v(&o.force)}),
+            &contract::ResidualsMsg {
+                version: CONTRACT_VERSION,
+                timestamp: Time::from_ns(t),
+                sample: o.sample,
+                t_ns: t,
+                source: Source::Replay,
+                pass: *pass,
+                connections: connections.clone(),
+                residual: v(&o.residual),
+                force: v(&o.force),
+            },
         )?;
-        w.write_output(
+        contract::write(
+            &mut w,
             STATES_TOPIC,
-            "jointid.ConnectionStates",
-            &ss,
             t,
-            &json!({"sample": o.sample, "t_ns": t, "pass": pass,
-                    "delta": v(&o.delta), "delta_v": v(&o.delta_v), "delta_a": v(&o.delta_a)}),
+            &contract::StatesMsg {
+                version: CONTRACT_VERSION,
+                timestamp: Time::from_ns(t),
+                sample: o.sample,
+                t_ns: t,
+                source: Source::Replay,
+                pass: *pass,
+                connections: connections.clone(),
+                delta: v(&o.delta),
+                delta_v: v(&o.delta_v),
+                delta_a: v(&o.delta_a),
+            },
         )?;
     }
     let t_end = data.t_ns.last().copied().unwrap_or(0);
-    let (ps, ds) = (parameters_schema(), diagnostics_schema());
-    let n = outcome.identification.passes.len();
-    for (k, p) in outcome.identification.passes.iter().enumerate() {
+    let id = &outcome.identification;
+    let mut log = Vec::new();
+    // The identified model's response to the measured excitation, for comparison with
+    // the measured one (Foxglove plots both topics).
+    let prediction = crate::model::Model::assemble(setup)
+        .map_err(|e| e.to_string())
+        .and_then(|model| crate::report::predicted_response(setup, &model, data, id));
+    match prediction {
+        Ok(predicted) => {
+            let sensors: Vec<String> = setup.sensors.iter().map(|s| s.name.clone()).collect();
+            for i in 0..data.len() {
+                let t = data.t_ns[i];
+                contract::write(
+                    &mut w,
+                    PREDICTED_TOPIC,
+                    t,
+                    &contract::PredictedMsg {
+                        version: CONTRACT_VERSION,
+                        timestamp: Time::from_ns(t),
+                        sample: data.samples[i],
+                        t_ns: t,
+                        sensors: sensors.clone(),
+                        values: predicted.iter().map(|ch| ch[i]).collect(),
+                    },
+                )?;
+            }
+        }
+        Err(why) => log.push((LogLevel::Warning, format!("no predicted response: {why}"))),
+    }
+    let n = id.passes.len();
+    for (k, p) in id.passes.iter().enumerate() {
         let last = k + 1 == n;
-        w.write_output(
+        contract::write(
+            &mut w,
             PARAMETERS_TOPIC,
-            "jointid.Parameters",
-            &ps,
             t_end,
-            &json!({"pass": p.pass, "final": last, "converged": last && outcome.identification.converged,
-                    "parameters": p.parameters}),
+            &contract::ParametersMsg {
+                version: CONTRACT_VERSION,
+                timestamp: Time::from_ns(t_end),
+                sample: data.samples.last().copied().unwrap_or(0),
+                t_ns: t_end,
+                source: Source::Replay,
+                kind: ParametersKind::Pass,
+                pass: Some(p.pass),
+                is_final: last,
+                converged: last.then_some(id.converged),
+                parameters: contract::parameters_from_estimates(if last {
+                    id.final_parameters().unwrap_or(&p.parameters)
+                } else {
+                    &p.parameters
+                }),
+            },
         )?;
-        w.write_output(
+        contract::write(
+            &mut w,
             DIAGNOSTICS_TOPIC,
-            "jointid.Diagnostics",
-            &ds,
             t_end,
-            &json!({"pass": p.pass, "estimator": p.diagnostics, "fit_condition": p.fit_condition,
-                    "fit_rms_residual_N": p.fit_rms_residual, "rows_used": p.rows_used,
-                    "rows_excluded_stuck": p.rows_excluded_stuck,
-                    "max_change_std_errors": p.max_change_std_errors}),
+            &contract::DiagnosticsMsg {
+                version: CONTRACT_VERSION,
+                timestamp: Time::from_ns(t_end),
+                t_ns: t_end,
+                source: Source::Replay,
+                kind: contract::DiagnosticsKind::Pass,
+                pass: Some(contract::PassDiagnostics::from_pass(p)),
+                summary: None,
+                live: None,
+            },
         )?;
     }
-    if let Some(track) = &outcome.identification.track {
-        let ts = track_schema();
+    if let Some(track) = &id.track {
         let keys = setup.param_keys();
         for p in &track.points {
             let t = data
@@ -463,26 +468,81 @@ pub(crate) fn write_results(
                 .get((p.sample - first) as usize)
                 .copied()
                 .unwrap_or_else(|| t_of(p.sample));
-            w.write_output(
+            contract::write(
+                &mut w,
                 TRACK_TOPIC,
-                "jointid.Track",
-                &ts,
                 t,
-                &json!({"sample": p.sample, "t_ns": t, "forgetting": track.forgetting,
-                        "keys": keys, "parameters": p.parameters, "unsolved": p.unsolved}),
+                &contract::TrackMsg {
+                    version: CONTRACT_VERSION,
+                    timestamp: Time::from_ns(t),
+                    sample: p.sample,
+                    t_ns: t,
+                    forgetting: track.forgetting,
+                    keys: keys.clone(),
+                    parameters: p
+                        .parameters
+                        .iter()
+                        .map(|v| {
+                            v.as_ref().map(|v| contract::TrackedValueMsg {
+                                value: v.value,
+                                std_error: contract::finite(v.std_error),
+                            })
+                        })
+                        .collect(),
+                    unsolved: p.unsolved.clone(),
+                },
             )?;
         }
     }
-    w.write_output(
+    let inadequacy = id.inadequacy();
+    contract::write(
+        &mut w,
         DIAGNOSTICS_TOPIC,
-        "jointid.Diagnostics",
-        &ds,
         t_end,
-        &json!({"summary": true, "converged": outcome.identification.converged,
-                "stop_reason": outcome.identification.stop_reason,
-                "failure": outcome.identification.failure,
-                "input_warnings": outcome.input_warnings, "input_error": outcome.input_error}),
+        &contract::DiagnosticsMsg {
+            version: CONTRACT_VERSION,
+            timestamp: Time::from_ns(t_end),
+            t_ns: t_end,
+            source: Source::Replay,
+            kind: contract::DiagnosticsKind::Summary,
+            pass: None,
+            summary: Some(contract::RunSummary {
+                converged: id.converged,
+                stop_reason: id.stop_reason.clone(),
+                failure: id.failure.clone(),
+                input_warnings: outcome.input_warnings.clone(),
+                input_error: outcome.input_error.clone(),
+                inadequacy: inadequacy.clone(),
+            }),
+            live: None,
+        },
     )?;
+    // Notes, warnings and errors on the log topic (Foxglove's Log panel).
+    log.extend(id.notes.iter().map(|n| (LogLevel::Info, n.clone())));
+    if let Some(ml) = &id.maximum_likelihood {
+        log.extend(ml.warnings.iter().map(|n| (LogLevel::Warning, n.clone())));
+    }
+    log.extend(
+        outcome
+            .input_warnings
+            .iter()
+            .map(|n| (LogLevel::Warning, n.clone())),
+    );
+    log.extend(
+        id.failure
+            .iter()
+            .chain(&outcome.input_error)
+            .map(|e| (LogLevel::Error, e.clone())),
+    );
+    log.push((LogLevel::Info, format!("stopped: {}", id.stop_reason)));
+    for (level, message) in log {
+        contract::write(
+            &mut w,
+            LOG_TOPIC,
+            t_end,
+            &LogMsg::new(t_end, level, "jointid.replay", message),
+        )?;
+    }
     w.finish()?;
     Ok(())
 }

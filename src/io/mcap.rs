@@ -734,6 +734,40 @@ impl RecordingWriter {
         Ok(())
     }
 
+    /// Whether `topic` has been registered as an output by [`Self::write_output`].
+    pub fn has_output(&self, topic: &str) -> bool {
+        self.outputs.contains_key(topic)
+    }
+
+    /// Writes one JSON message on an output topic already registered by
+    /// [`Self::write_output`] (no schema comparison: the per-sample path).
+    pub fn write_registered_output<T: Serialize>(
+        &mut self,
+        topic: &str,
+        t_ns: u64,
+        msg: &T,
+    ) -> Result<(), McapIoError> {
+        let data = serde_json::to_vec(msg).map_err(|source| McapIoError::Json {
+            path: self.partial.clone(),
+            topic: topic.to_string(),
+            source,
+        })?;
+        let Some(output) = self.outputs.get_mut(topic) else {
+            return Err(usage(&self.partial, format!("{topic} is not registered")));
+        };
+        let header = MessageHeader {
+            channel_id: output.channel_id,
+            sequence: output.sequence,
+            log_time: t_ns,
+            publish_time: t_ns,
+        };
+        self.writer
+            .write_to_known_channel(&header, &data)
+            .map_err(mcap_error(&self.partial))?;
+        output.sequence = output.sequence.wrapping_add(1);
+        Ok(())
+    }
+
     /// Writes the summary and footer, syncs the file and renames `<path>.partial` to `path`.
     pub fn finish(self) -> Result<(), McapIoError> {
         let RecordingWriter {

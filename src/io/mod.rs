@@ -1,6 +1,7 @@
 //! Input and output: MCAP recordings (`mcap`) and, for live runs, iceoryx2 shared memory.
 //! The numerical core never touches these; it sees [`crate::identify::TestData`] and
 //! per-sample slices.
+pub mod contract;
 pub mod csv;
 pub mod mcap;
 pub mod shm;

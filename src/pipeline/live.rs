@@ -63,7 +63,6 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use crossbeam_channel::{Receiver, Sender, TrySendError, bounded, select};
 use serde::Serialize;
-use serde_json::json;
 
 use super::{Aligned, CHANNEL_CAPACITY, Msg, SourceItem, panic_message, topic_index};
 use crate::app::{excitation_channels, response_channels};
@@ -77,6 +76,7 @@ use crate::identify::{
     check_observability, identify, tune_kalman,
 };
 use crate::io::Frame;
+use crate::io::contract::{self, CONTRACT_VERSION};
 use crate::io::mcap::{
     DIAGNOSTICS_TOPIC, InputTopic, PARAMETERS_TOPIC, RECORDING_METADATA, RESIDUALS_TOPIC,
     RecordingWriter, TRUTH_METADATA,
@@ -1363,21 +1363,6 @@ impl Outputs {
     }
 }
 
-fn residual_schema() -> serde_json::Value {
-    json!({"type": "object", "title": "jointid.Residuals", "properties": {
-        "sample": {"type": "integer"}, "t_ns": {"type": "integer"}, "pass": {"type": "integer"},
-        "connections": {"type": "array", "items": {"type": "string"}},
-        "residual": {"type": "array", "items": {"type": "number"}, "description": "R = f − f̂ per connection, N"},
-        "force": {"type": "array", "items": {"type": "number"}, "description": "total connection force f, N, positive resisting"}}})
-}
-
-fn parameters_schema() -> serde_json::Value {
-    json!({"type": "object", "title": "jointid.LiveParameters", "properties": {
-        "sample": {"type": "integer"}, "final": {"type": "boolean"}, "kind": {"type": "string"},
-        "parameters": {"type": "array", "items": {"type": "object", "properties": {
-            "key": {"type": "string"}, "value": {"type": "number"}, "std_error": {"type": "number"}}}}}})
-}
-
 struct Sink<'a> {
     opts: &'a LiveOptions,
     report: LiveReport,
@@ -1391,6 +1376,9 @@ struct Sink<'a> {
     last_progress: Instant,
     residual_values: Vec<f64>,
     names: Vec<String>,
+    /// `(key, connection, basis, unit)` per parameter, and the setup's truth by key.
+    labels: Vec<(String, String, String, String)>,
+    truth: std::collections::BTreeMap<String, f64>,
     dt_s: f64,
     progress: &'a mut (dyn FnMut(&LiveReport) + Send),
 }
@@ -1448,12 +1436,18 @@ impl Sink<'_> {
             let every = self.opts.record_residuals_every.max(1) as u64;
             if self.recorder.is_some() && o.sample % every == 0 {
                 let v = |x: &nalgebra::DVector<f64>| x.iter().copied().collect::<Vec<f64>>();
-                let msg = json!({"sample": o.sample, "t_ns": t, "pass": 0, "connections": self.names,
-                                 "residual": v(&o.residual), "force": v(&o.force)});
-                let schema = residual_schema();
-                self.record(|w| {
-                    w.write_output(RESIDUALS_TOPIC, "jointid.Residuals", &schema, t, &msg)
-                });
+                let msg = contract::ResidualsMsg {
+                    version: CONTRACT_VERSION,
+                    timestamp: contract::Time::from_ns(t),
+                    sample: o.sample,
+                    t_ns: t,
+                    source: contract::Source::Live,
+                    pass: 0,
+                    connections: self.names.clone(),
+                    residual: v(&o.residual),
+                    force: v(&o.force),
+                };
+                self.record(|w| contract::write(w, RESIDUALS_TOPIC, t, &msg));
             }
         }
         if self.last_progress.elapsed() >= self.opts.progress_interval {
@@ -1515,17 +1509,40 @@ impl Sink<'_> {
         };
         Outputs::offer(&self.outputs.diagnostics, frame, &mut self.outputs.dropped);
         let t = unix_ns();
-        let msg = serde_json::to_value(&r).unwrap_or(serde_json::Value::Null);
-        let schema = json!({"type": "object", "title": "jointid.LiveDiagnostics"});
-        self.record(|w| {
-            w.write_output(
-                DIAGNOSTICS_TOPIC,
-                "jointid.LiveDiagnostics",
-                &schema,
-                t,
-                &msg,
-            )
-        });
+        let msg = contract::DiagnosticsMsg {
+            version: CONTRACT_VERSION,
+            timestamp: contract::Time::from_ns(t),
+            t_ns: t,
+            source: contract::Source::Live,
+            kind: contract::DiagnosticsKind::Live,
+            pass: None,
+            summary: None,
+            live: Some(contract::LiveDiagnostics::from_report(&r)),
+        };
+        self.record(|w| contract::write(w, DIAGNOSTICS_TOPIC, t, &msg));
+    }
+
+    /// A published parameter in the contract's shape (labels and truth from the setup).
+    fn parameter_msg(&self, p: &LiveParameter) -> contract::ParameterMsg {
+        let (connection, basis, unit) = self
+            .labels
+            .iter()
+            .find(|l| l.0 == p.key)
+            .map(|l| (l.1.clone(), l.2.clone(), l.3.clone()))
+            .unwrap_or_default();
+        let std_error = contract::finite(p.std_error);
+        contract::ParameterMsg {
+            key: p.key.clone(),
+            connection,
+            basis,
+            unit,
+            value: p.value,
+            std_error,
+            ci95: std_error.map(|s| [p.value - 1.96 * s, p.value + 1.96 * s]),
+            crlb: None,
+            std_error_ols: None,
+            truth: self.truth.get(&p.key).copied(),
+        }
     }
 
     fn parameters(
@@ -1547,17 +1564,23 @@ impl Sink<'_> {
             },
             &mut self.outputs.dropped,
         );
-        let msg = json!({"sample": sample, "final": is_final, "kind": kind, "parameters": params});
-        let schema = parameters_schema();
-        self.record(|w| {
-            w.write_output(
-                PARAMETERS_TOPIC,
-                "jointid.LiveParameters",
-                &schema,
-                t_ns,
-                &msg,
-            )
-        });
+        let msg = contract::ParametersMsg {
+            version: CONTRACT_VERSION,
+            timestamp: contract::Time::from_ns(t_ns),
+            sample,
+            t_ns,
+            source: contract::Source::Live,
+            kind: if kind == "online" {
+                contract::ParametersKind::Online
+            } else {
+                contract::ParametersKind::Batch
+            },
+            pass: None,
+            is_final,
+            converged: None,
+            parameters: params.iter().map(|p| self.parameter_msg(p)).collect(),
+        };
+        self.record(|w| contract::write(w, PARAMETERS_TOPIC, t_ns, &msg));
         // The session's running estimate: the online fit, or in a batch-only session
         // (accelerometers only) its periodic batch refits; the final batch identification
         // is reported apart (`final_identification`).
@@ -1768,6 +1791,16 @@ pub fn run(
             last_progress: Instant::now(),
             residual_values: Vec::new(),
             names: setup.connections.iter().map(|c| c.name.clone()).collect(),
+            labels: contract::parameter_labels(setup),
+            truth: setup
+                .param_keys()
+                .into_iter()
+                .zip(setup.connections.iter().flat_map(|c| match &c.truth {
+                    Some(t) => t.iter().map(|&v| Some(v)).collect::<Vec<_>>(),
+                    None => vec![None; c.basis.len()],
+                }))
+                .filter_map(|(k, v)| Some((k, v?)))
+                .collect(),
             dt_s: setup.dt_s,
             progress,
         };
