@@ -231,8 +231,9 @@ enum Command {
         /// online values; stalls the stepper ~0.3 s once, see README).
         #[arg(long)]
         tune_warmup: bool,
-        /// Record every k-th residual (1: all).
-        #[arg(long, default_value_t = 1)]
+        /// Record every k-th residual (1: all). The default keeps recordings compact (the
+        /// inputs are always recorded whole, so `jointid replay` recomputes every residual).
+        #[arg(long, default_value_t = 10)]
         record_residuals_every: usize,
         /// Print one JSON report at the end instead of the progress line and table.
         #[arg(long)]
@@ -573,6 +574,7 @@ fn live(setup: &Setup, o: LiveOptions, json: bool) -> Result<ExitCode> {
         .create::<ipc::Service>()
         .map_err(|e| anyhow::anyhow!("iceoryx2 node for signal handling: {e:?}"))?;
     let stop = Arc::clone(&o.stop);
+    let recording = o.record.clone();
     let labels_setup = setup;
     let setup = setup.clone();
     let worker = std::thread::spawn(move || {
@@ -583,9 +585,27 @@ fn live(setup: &Setup, o: LiveOptions, json: bool) -> Result<ExitCode> {
         };
         live::run(&setup, &o, &mut progress)
     });
+    // First Ctrl-C/SIGTERM: stop reading, finish the recording and the final batch
+    // identification. A second one: exit at once; the recording keeps what its chunks had
+    // flushed, in `FILE.partial`, which `jointid replay` and `inspect` read.
+    let mut requests = 0;
     while !worker.is_finished() {
         if node.wait(std::time::Duration::from_millis(50)).is_err() {
+            requests += 1;
             stop.store(true, std::sync::atomic::Ordering::Release);
+            if requests >= 2 {
+                eprintln!(
+                    "\nsecond stop request: exiting now without the final batch identification{}",
+                    recording
+                        .as_ref()
+                        .map(|r| format!(
+                            "; the recording so far is in {}",
+                            jointid::io::mcap::partial_path(r).display()
+                        ))
+                        .unwrap_or_default()
+                );
+                std::process::exit(130);
+            }
         }
     }
     let report = worker

@@ -1290,6 +1290,57 @@ pub fn identify_ml(
     let clock = std::time::Instant::now();
     let debug = std::env::var_os("JOINTID_ML_DEBUG").is_some();
     let mut exact = exact;
+    // 0. A start in the right basin. The output-error likelihood of a vibrating structure
+    //    has a local minimum wherever a resonance of the model lines up with another one of
+    //    the data, and the setup's initial values (often 0) may sit in any of them: the
+    //    stiffness-like parameters (basis `u`) start from the likeliest of a log-spaced grid
+    //    around the force-per-deformation scale of the record, the other linear parameters
+    //    refitted at every grid point, on the exact map over a short prefix.
+    {
+        let len = (4 * opts.first_stage_samples).max(needed).min(n_all);
+        for &j in linear
+            .iter()
+            .filter(|&&j| matches!(prob.roles[j].1, Basis::U))
+        {
+            let others: Vec<usize> = linear.iter().copied().filter(|&k| k != j).collect();
+            let typical = typical_value(&prob, &pt, j, len)?;
+            let mut best: Option<(f64, Point)> = pt_cost_len(&prob, &pt, exact, len)
+                .ok()
+                .map(|c| (c, pt.clone()));
+            for g in [0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0] {
+                let mut cand = pt.clone();
+                cand.p[j] = g * typical;
+                if fit_stage(
+                    &prob,
+                    &mut cand,
+                    exact,
+                    len,
+                    opts.screen_iterations + 3,
+                    &others,
+                    opts.free_initial_state,
+                )
+                .is_err()
+                {
+                    continue;
+                }
+                if let Ok(c) = pt_cost_len(&prob, &cand, exact, len)
+                    && best.as_ref().is_none_or(|b| c < b.0)
+                {
+                    best = Some((c, cand));
+                }
+            }
+            if let Some((_, b)) = best {
+                pt = b;
+            }
+        }
+        if debug {
+            eprintln!(
+                "start grid: p = {:?}, {:.3} s",
+                pt.p,
+                clock.elapsed().as_secs_f64()
+            );
+        }
+    }
     if candidates.len() > 1 {
         let len = (2 * opts.first_stage_samples).max(needed).min(n_all);
         let mut best: Option<(f64, Discretisation, Point)> = None;
