@@ -337,6 +337,15 @@ fn draw_error(path: &Path) -> impl Fn(String) -> ReportError + '_ {
     }
 }
 
+/// How a plot draws its series.
+#[derive(Clone, Copy, PartialEq)]
+enum Marks {
+    /// Dots (a loop: the points have no order that a line could follow).
+    Points,
+    /// Lines (a time history).
+    Lines,
+}
+
 fn scatter_plot(
     path: &Path,
     title: &str,
@@ -344,8 +353,46 @@ fn scatter_plot(
     y_label: &str,
     series: &[Series<'_>],
 ) -> Result<(), ReportError> {
+    xy_plot(
+        path,
+        (900, 600),
+        title,
+        x_label,
+        y_label,
+        series,
+        Marks::Points,
+    )
+}
+
+fn line_plot(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[Series<'_>],
+) -> Result<(), ReportError> {
+    xy_plot(
+        path,
+        (1000, 500),
+        title,
+        x_label,
+        y_label,
+        series,
+        Marks::Lines,
+    )
+}
+
+fn xy_plot(
+    path: &Path,
+    size: (u32, u32),
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[Series<'_>],
+    marks: Marks,
+) -> Result<(), ReportError> {
     let err = draw_error(path);
-    let root = SVGBackend::new(path, (900, 600)).into_drawing_area();
+    let root = SVGBackend::new(path, size).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(e.to_string()))?;
     let all = series.iter().flat_map(|(_, s, _)| s.iter().copied());
     let Some((xr, yr)) = range(all) else {
@@ -359,12 +406,21 @@ fn scatter_plot(
         .y_label_area_size(80)
         .build_cartesian_2d(xr, yr)
         .map_err(|e| err(e.to_string()))?;
+    let y_ticks = |v: &f64| tick(*v, y_width);
+    // A time axis reads best in plain decimals; a deformation axis needs exponents.
+    let x_ticks = |v: &f64| match marks {
+        Marks::Points => tick(*v, x_width),
+        Marks::Lines => {
+            let text = format!("{v:.6}");
+            text.trim_end_matches('0').trim_end_matches('.').to_string()
+        }
+    };
     chart
         .configure_mesh()
         .x_desc(x_label)
         .y_desc(y_label)
-        .x_label_formatter(&|v| tick(*v, x_width))
-        .y_label_formatter(&|v| tick(*v, y_width))
+        .x_label_formatter(&x_ticks)
+        .y_label_formatter(&y_ticks)
         .draw()
         .map_err(|e| err(e.to_string()))?;
     for (label, points, color) in series {
@@ -372,73 +428,41 @@ fn scatter_plot(
             continue;
         }
         let color = *color;
-        chart
-            .draw_series(
-                points
-                    .iter()
-                    .map(move |&p| Circle::new(p, 2, color.filled())),
-            )
-            .map_err(|e| err(e.to_string()))?
-            .label(label.as_str())
-            .legend(move |(x, y)| Circle::new((x + 10, y), 4, color.filled()));
+        let drawn = match marks {
+            Marks::Points => {
+                let radius = if series.len() > 1 && color == RED {
+                    1
+                } else {
+                    3
+                };
+                chart
+                    .draw_series(
+                        points
+                            .iter()
+                            .map(move |&p| Circle::new(p, radius, color.filled())),
+                    )
+                    .map_err(|e| err(e.to_string()))?
+            }
+            Marks::Lines => chart
+                .draw_series(LineSeries::new(
+                    points.iter().copied(),
+                    color.stroke_width(1),
+                ))
+                .map_err(|e| err(e.to_string()))?,
+        };
+        drawn.label(label.as_str()).legend(move |(x, y)| {
+            PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
+        });
     }
     chart
         .configure_series_labels()
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
-        .position(SeriesLabelPosition::UpperLeft)
-        .draw()
-        .map_err(|e| err(e.to_string()))?;
-    root.present().map_err(|e| err(e.to_string()))
-}
-
-fn line_plot(
-    path: &Path,
-    title: &str,
-    x_label: &str,
-    y_label: &str,
-    series: &[Series<'_>],
-) -> Result<(), ReportError> {
-    let err = draw_error(path);
-    let root = SVGBackend::new(path, (1000, 500)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| err(e.to_string()))?;
-    let all = series.iter().flat_map(|(_, s, _)| s.iter().copied());
-    let Some((xr, yr)) = range(all) else {
-        return Err(err("no finite points to draw".into()));
-    };
-    let y_width = yr.end - yr.start;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 20))
-        .margin(15)
-        .x_label_area_size(45)
-        .y_label_area_size(80)
-        .build_cartesian_2d(xr, yr)
-        .map_err(|e| err(e.to_string()))?;
-    chart
-        .configure_mesh()
-        .x_desc(x_label)
-        .y_desc(y_label)
-        .y_label_formatter(&|v| tick(*v, y_width))
-        .draw()
-        .map_err(|e| err(e.to_string()))?;
-    for (label, points, color) in series {
-        let color = *color;
-        chart
-            .draw_series(LineSeries::new(
-                points.iter().copied(),
-                color.stroke_width(1),
-            ))
-            .map_err(|e| err(e.to_string()))?
-            .label(label.as_str())
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
-            });
-    }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .position(SeriesLabelPosition::UpperRight)
+        .position(if marks == Marks::Points {
+            SeriesLabelPosition::UpperLeft
+        } else {
+            SeriesLabelPosition::UpperRight
+        })
         .draw()
         .map_err(|e| err(e.to_string()))?;
     root.present().map_err(|e| err(e.to_string()))

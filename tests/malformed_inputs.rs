@@ -115,25 +115,32 @@ fn write(dir: &Path, name: &str, bytes: &[u8]) -> PathBuf {
     p
 }
 
-#[test]
-fn malformed_recordings_give_one_line_errors_without_panic_hang_or_large_allocation() {
-    let dir = tempfile::tempdir().unwrap();
+/// `jointid simulate` of the shipped friction setup into `dir/name`: random input,
+/// `steps` samples, binary frames.
+fn simulate(dir: &Path, name: &str, steps: usize) -> PathBuf {
     let setup = repo("recordings/two-beam-friction.toml");
-    let good = dir.path().join("good.mcap");
+    let out = dir.join(name);
     ok(&[
         "simulate",
         setup.to_str().unwrap(),
         "--out",
-        good.to_str().unwrap(),
+        out.to_str().unwrap(),
         "--scenario",
         "random",
         "--steps",
-        "12000",
+        &steps.to_string(),
         "--encoding",
         "binary",
         "--seed",
         "5",
     ]);
+    out
+}
+
+#[test]
+fn malformed_recordings_give_one_line_errors_without_panic_hang_or_large_allocation() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = simulate(dir.path(), "good.mcap", 12000);
     let bytes = std::fs::read(&good).unwrap();
     let records = record_offsets(&bytes);
     let chunks: Vec<usize> = records
@@ -196,20 +203,7 @@ fn malformed_recordings_give_one_line_errors_without_panic_hang_or_large_allocat
 #[test]
 fn a_damaged_chunk_is_skipped_by_way_of_the_chunk_index_and_reported() {
     let dir = tempfile::tempdir().unwrap();
-    let setup = repo("recordings/two-beam-friction.toml");
-    let good = dir.path().join("good.mcap");
-    ok(&[
-        "simulate",
-        setup.to_str().unwrap(),
-        "--out",
-        good.to_str().unwrap(),
-        "--scenario",
-        "random",
-        "--steps",
-        "30000",
-        "--encoding",
-        "binary",
-    ]);
+    let good = simulate(dir.path(), "good.mcap", 30000);
     let bytes = std::fs::read(&good).unwrap();
     let chunks: Vec<usize> = record_offsets(&bytes)
         .iter()

@@ -688,7 +688,6 @@ impl RecordingWriter {
             topic: topic.to_string(),
             source,
         };
-        let data = serde_json::to_vec(msg).map_err(json_error)?;
         if !self.outputs.contains_key(topic) {
             let schema_bytes = serde_json::to_vec(schema).map_err(json_error)?;
             let schema_id = self
@@ -709,7 +708,7 @@ impl RecordingWriter {
                 },
             );
         }
-        let Some(output) = self.outputs.get_mut(topic) else {
+        let Some(output) = self.outputs.get(topic) else {
             return Err(usage(&self.partial, format!("{topic} is not registered")));
         };
         if output.schema_name != schema_name || output.schema != *schema {
@@ -721,17 +720,7 @@ impl RecordingWriter {
                 ),
             ));
         }
-        let header = MessageHeader {
-            channel_id: output.channel_id,
-            sequence: output.sequence,
-            log_time: t_ns,
-            publish_time: t_ns,
-        };
-        self.writer
-            .write_to_known_channel(&header, &data)
-            .map_err(mcap_error(&self.partial))?;
-        output.sequence = output.sequence.wrapping_add(1);
-        Ok(())
+        self.write_registered_output(topic, t_ns, msg)
     }
 
     /// Whether `topic` has been registered as an output by [`Self::write_output`].
