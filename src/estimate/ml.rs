@@ -1294,8 +1294,10 @@ pub fn identify_ml(
     //    has a local minimum wherever a resonance of the model lines up with another one of
     //    the data, and the setup's initial values (often 0) may sit in any of them: the
     //    stiffness-like parameters (basis `u`) start from the likeliest of a log-spaced grid
-    //    around the force-per-deformation scale of the record, the other linear parameters
-    //    refitted at every grid point, on the exact map over a short prefix.
+    //    around the force-per-deformation scale of the record (the other linear parameters
+    //    refitted at every grid point, the three best descended in full), on the exact map
+    //    over a short prefix.
+    let mut fitted_len = 0;
     {
         let len = (4 * opts.first_stage_samples).max(needed).min(n_all);
         for &j in linear
@@ -1304,10 +1306,14 @@ pub fn identify_ml(
         {
             let others: Vec<usize> = linear.iter().copied().filter(|&k| k != j).collect();
             let typical = typical_value(&prob, &pt, j, len)?;
-            let mut best: Option<(f64, Point)> = pt_cost_len(&prob, &pt, exact, len)
+            // Screen: the grid (factor 2 apart, 0.1 to 100 times the scale) with the other
+            // parameters refitted briefly; then the three likeliest descend in full.
+            let mut screened: Vec<(f64, Point)> = pt_cost_len(&prob, &pt, exact, len)
                 .ok()
-                .map(|c| (c, pt.clone()));
-            for g in [0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0] {
+                .map(|c| (c, pt.clone()))
+                .into_iter()
+                .collect();
+            for g in (0..11).map(|i| 0.1 * f64::powi(2.0, i)) {
                 let mut cand = pt.clone();
                 cand.p[j] = g * typical;
                 if fit_stage(
@@ -1323,6 +1329,26 @@ pub fn identify_ml(
                 {
                     continue;
                 }
+                if let Ok(c) = pt_cost_len(&prob, &cand, exact, len) {
+                    screened.push((c, cand));
+                }
+            }
+            screened.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let mut best: Option<(f64, Point)> = None;
+            for (_, mut cand) in screened.into_iter().take(3) {
+                if fit_stage(
+                    &prob,
+                    &mut cand,
+                    exact,
+                    len,
+                    opts.max_iterations,
+                    &linear,
+                    opts.free_initial_state,
+                )
+                .is_err()
+                {
+                    continue;
+                }
                 if let Ok(c) = pt_cost_len(&prob, &cand, exact, len)
                     && best.as_ref().is_none_or(|b| c < b.0)
                 {
@@ -1331,6 +1357,7 @@ pub fn identify_ml(
             }
             if let Some((_, b)) = best {
                 pt = b;
+                fitted_len = len;
             }
         }
         if debug {
@@ -1383,6 +1410,9 @@ pub fn identify_ml(
     {
         first = (first * 2).min(n_all);
     }
+    // Never back to a shorter prefix than the start grid settled the basin on: on a noisy
+    // record a shorter one lets the descent wander into another basin.
+    first = first.max(fitted_len).min(n_all);
     for (phase, active) in phases.into_iter().enumerate() {
         if phase == 1 {
             // Profile likelihood over each non-linear parameter on a short prefix: the
