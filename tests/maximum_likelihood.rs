@@ -213,8 +213,8 @@ fn seeds_that_once_fell_into_wrong_minima_are_within_three_and_a_half_standard_e
     ] {
         let d = data(&setup, substeps, noise, seed, 0, 2000);
         let (fit, _) = identify_ml(&setup, &model, &d, &MlOptions::default()).unwrap();
-        for k in 0..2 {
-            let z = (fit.params[k] - truth[k]) / fit.std_errors[k];
+        for (k, t) in truth.iter().enumerate() {
+            let z = (fit.params[k] - t) / fit.std_errors[k];
             assert!(
                 z.abs() < 3.5,
                 "{substeps} sub-steps, noise {noise}, seed {seed}: param {k} = {} ± {} ({z:.1} se)",
