@@ -134,6 +134,10 @@ impl TestData {
 #[derive(Debug, Clone)]
 pub struct IdentifyOptions {
     pub estimator: EstimatorKind,
+    /// The estimator was chosen by default (not by the setup or `--estimator`): when maximum
+    /// likelihood cannot run (a model too large for its dense matrices, a record too short),
+    /// the Kalman pipeline runs instead, with a note saying why.
+    pub estimator_by_default: bool,
     pub weighting: Weighting,
     pub passes: usize,
     pub tolerance_std_errors: f64,
@@ -185,7 +189,8 @@ impl IdentifyOptions {
     pub fn from_setup(setup: &Setup) -> Self {
         let e = &setup.estimator;
         Self {
-            estimator: e.kind,
+            estimator: e.kind_for(&setup.connections),
+            estimator_by_default: e.kind.is_none(),
             weighting: e.weighting,
             passes: e.passes,
             tolerance_std_errors: e.tolerance_std_errors,
@@ -202,7 +207,7 @@ impl IdentifyOptions {
             stick_band_sigmas: 3.0,
             forgetting: e.forgetting,
             track_every: e.track_every,
-            output_error: e.output_error && e.kind == EstimatorKind::Kalman,
+            output_error: e.output_error && e.kind_for(&setup.connections) == EstimatorKind::Kalman,
             output_error_iterations: 20,
             crlb: e.crlb,
             retune_above_std_errors: 1.0,
@@ -756,11 +761,36 @@ pub fn identify(
         return Err(IdentifyError::TooShort(data.len()));
     }
     let model = Model::for_identification(setup)?;
+    let mut fallback_note = None;
     if opts.estimator == EstimatorKind::Ml {
-        return identify_by_maximum_likelihood(
-            setup, &model, data, opts, truth, on_pass, on_sample,
-        );
+        let ml =
+            identify_by_maximum_likelihood(setup, &model, data, opts, truth, on_pass, on_sample);
+        match ml {
+            Err(IdentifyError::MaximumLikelihood(e))
+                if opts.estimator_by_default
+                    && matches!(
+                        e,
+                        crate::estimate::ml::MlError::NeedsDense { .. }
+                            | crate::estimate::ml::MlError::TooShort { .. }
+                    ) =>
+            {
+                fallback_note = Some(format!(
+                    "the default estimator for this law is maximum likelihood, which cannot run here ({e}); the Kalman pipeline ran instead"
+                ));
+            }
+            other => return other,
+        }
     }
+    let kalman_opts;
+    let opts = if fallback_note.is_some() {
+        kalman_opts = IdentifyOptions {
+            estimator: EstimatorKind::Kalman,
+            ..opts.clone()
+        };
+        &kalman_opts
+    } else {
+        opts
+    };
     let by_output_error = opts.output_error && model.has_dense() && has_spring_basis(setup);
     check_observability_with(setup, &model, opts, by_output_error)?;
     let (sigma, estimated) = channel_noise(setup, data);
@@ -776,6 +806,7 @@ pub fn identify(
         maximum_likelihood: None,
         notes: Vec::new(),
     };
+    result.notes.extend(fallback_note);
     if setup.estimator.reduce_modes.is_some() {
         // Say so: the reduction's bias is not in the standard errors.
         let kept = crate::model::reduce::boundary_dofs(&model).len();

@@ -382,8 +382,9 @@ pub enum Weighting {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EstimatorSpec {
+    /// The estimator; absent: [`EstimatorSpec::kind_for`] chooses by the law.
     #[serde(default)]
-    pub kind: EstimatorKind,
+    pub kind: Option<EstimatorKind>,
     #[serde(default)]
     pub weighting: Weighting,
     /// Maximum passes over the data (Step VI).
@@ -448,10 +449,31 @@ fn default_max_cond() -> f64 {
     1e12
 }
 
+impl EstimatorSpec {
+    /// The estimator to run: the setup's `kind`, or by default maximum likelihood for laws
+    /// linear in the state (`u`, `v`, `a`, `const` terms only: its measured scope, where its
+    /// errors hold, ACCURACY.md) and the Kalman pipeline for the others (`sign`, `u^3`,
+    /// `gap`), which maximum likelihood refuses.
+    pub fn kind_for(&self, connections: &[Connection]) -> EstimatorKind {
+        self.kind.unwrap_or_else(|| {
+            let linear = connections.iter().all(|c| {
+                c.basis
+                    .iter()
+                    .all(|b| matches!(b, Basis::U | Basis::V | Basis::A | Basis::Const(_)))
+            });
+            if linear {
+                EstimatorKind::Ml
+            } else {
+                EstimatorKind::Kalman
+            }
+        })
+    }
+}
+
 impl Default for EstimatorSpec {
     fn default() -> Self {
         Self {
-            kind: EstimatorKind::default(),
+            kind: None,
             weighting: Weighting::default(),
             passes: default_passes(),
             tolerance_std_errors: default_tol_se(),
@@ -1205,7 +1227,9 @@ dt_s = 0.01
         let s = Setup::from_toml(TINY, "tiny").unwrap();
         assert_eq!(s.n_params(), 2);
         assert_eq!(s.param_keys(), vec!["j.u", "j.v"]);
-        assert_eq!(s.estimator.kind, EstimatorKind::Kalman);
+        assert_eq!(s.estimator.kind, None);
+        // `u, v` is linear in the state: the default is maximum likelihood.
+        assert_eq!(s.estimator.kind_for(&s.connections), EstimatorKind::Ml);
     }
 
     #[test]

@@ -216,6 +216,7 @@ pub fn run(
     }
     if let Some(k) = req.estimator {
         opts.estimator = k;
+        opts.estimator_by_default = false;
         // The output-error refinement belongs to the Kalman pipeline: `--estimator paper`
         // is the 1989 method alone.
         opts.output_error = setup.estimator.output_error && k == EstimatorKind::Kalman;
