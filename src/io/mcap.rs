@@ -2036,7 +2036,7 @@ mod tests {
     }
 
     #[test]
-    fn chunk_crc_mismatch_is_reported_with_its_offset() {
+    fn chunk_crc_mismatch_is_skipped_by_the_index_or_reported_with_its_offset() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("crc.mcap");
         write_sample(
@@ -2051,12 +2051,32 @@ mod tests {
         let chunk = &summary.chunk_indexes[2];
         // Inside the last message's values: the records still parse, only the CRC can tell.
         flip(&path, chunk.chunk_start_offset + chunk.chunk_length - 3);
-        let err = read_recording(&path).unwrap_err();
+        // A complete file: its summary's chunk index leads past the damaged chunk, and the
+        // damage note says which chunk was skipped.
+        let rec = read_recording(&path).unwrap();
+        let damage = rec.damage.clone().unwrap_or_default();
+        assert!(
+            damage.contains(&format!("chunk at byte {}", chunk.chunk_start_offset))
+                && damage.contains("CRC")
+                && damage.contains("skipped"),
+            "{damage}"
+        );
+        assert!(rec.excitation.len() < 40 && rec.excitation.len() > 20);
+        // Without a summary (the file cut before it): the read stops there with the error,
+        // after yielding the frames before it.
+        let bytes = fs::read(&path).unwrap();
+        let cut = dir.path().join("cut.mcap");
+        fs::write(
+            &cut,
+            &bytes[..(chunk.chunk_start_offset + chunk.chunk_length) as usize],
+        )
+        .unwrap();
+        let err = read_recording(&cut).unwrap_err();
         match &err {
             McapIoError::ChunkCrc {
                 path: p, offset, ..
             } => {
-                assert_eq!(p, &path);
+                assert_eq!(p, &cut);
                 assert_eq!(*offset, chunk.chunk_start_offset);
             }
             other => panic!("expected ChunkCrc, got {other}"),
@@ -2066,8 +2086,7 @@ mod tests {
             text.contains(&format!("chunk at byte {}", chunk.chunk_start_offset)),
             "{text}"
         );
-        // The stream fails at the same chunk, after yielding the frames before it.
-        let items: Vec<_> = stream_frames(&path).unwrap().collect();
+        let items: Vec<_> = stream_frames(&cut).unwrap().collect();
         assert!(matches!(
             items.last(),
             Some(Err(McapIoError::ChunkCrc { .. }))
