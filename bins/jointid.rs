@@ -574,7 +574,6 @@ fn live(setup: &Setup, o: LiveOptions, json: bool) -> Result<ExitCode> {
         .create::<ipc::Service>()
         .map_err(|e| anyhow::anyhow!("iceoryx2 node for signal handling: {e:?}"))?;
     let stop = Arc::clone(&o.stop);
-    let recording = o.record.clone();
     let labels_setup = setup;
     let setup = setup.clone();
     let worker = std::thread::spawn(move || {
@@ -585,27 +584,9 @@ fn live(setup: &Setup, o: LiveOptions, json: bool) -> Result<ExitCode> {
         };
         live::run(&setup, &o, &mut progress)
     });
-    // First Ctrl-C/SIGTERM: stop reading, finish the recording and the final batch
-    // identification. A second one: exit at once; the recording keeps what its chunks had
-    // flushed, in `FILE.partial`, which `jointid replay` and `inspect` read.
-    let mut requests = 0;
     while !worker.is_finished() {
         if node.wait(std::time::Duration::from_millis(50)).is_err() {
-            requests += 1;
             stop.store(true, std::sync::atomic::Ordering::Release);
-            if requests >= 2 {
-                eprintln!(
-                    "\nsecond stop request: exiting now without the final batch identification{}",
-                    recording
-                        .as_ref()
-                        .map(|r| format!(
-                            "; the recording so far is in {}",
-                            jointid::io::mcap::partial_path(r).display()
-                        ))
-                        .unwrap_or_default()
-                );
-                std::process::exit(130);
-            }
         }
     }
     let report = worker
