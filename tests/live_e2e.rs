@@ -352,3 +352,55 @@ fn accelerometers_only_session_is_identified_by_batch_refits() {
     assert_eq!(rv["samples"], 4000);
     assert_eq!(params_of(&rv["parameters"]), params_of(&last["parameters"]));
 }
+
+/// SIGKILL mid-session (issue 14): the recording left in `FILE.partial` opens, and holds
+/// every sample but at most the last second's (10 kHz: 10,000 samples), because chunks are
+/// written as they fill (about 1 MiB, well under a second of data) and a cut chunk's
+/// complete messages are recovered.
+#[test]
+fn sigkill_loses_at_most_a_second_of_the_recording() {
+    let p = prefix("kill");
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("killed.mcap");
+    let live = spawn_live(
+        &p,
+        &["--record", rec.to_str().unwrap(), "--buffer-samples", "0"],
+    );
+    let mut acq = acquire(&p, &["--samples", "200000", "--substeps", "1"])
+        .spawn()
+        .unwrap();
+    // 30,000 frames published while we watched (3 s at 10 kHz), then the kill.
+    wait_for_frames(&p, "default", 30_000);
+    let status = Command::new("kill")
+        .args(["-KILL", &live.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let _ = finish(live, Duration::from_secs(10));
+    let _ = acq.kill();
+    let _ = acq.wait();
+    let partial = jointid::io::mcap::partial_path(&rec);
+    assert!(partial.exists(), "the partial recording is left");
+    let inspect = Command::new(JOINTID)
+        .arg("inspect")
+        .arg(&partial)
+        .arg("--json")
+        .output()
+        .unwrap();
+    assert!(
+        inspect.status.success(),
+        "{}",
+        String::from_utf8_lossy(&inspect.stderr)
+    );
+    let i: Value = serde_json::from_slice(&inspect.stdout).unwrap();
+    let frames = i["excitation_frames"].as_u64().unwrap();
+    println!("recovered {frames} frames; damage: {}", i["damage"]);
+    assert!(
+        frames >= 30_000 - 10_000,
+        "{frames} frames recovered of at least 30,000 processed"
+    );
+    assert!(
+        i["damage"].is_string(),
+        "a killed recording says it was cut"
+    );
+}
