@@ -44,24 +44,31 @@ fn recording_to_csv(mcap: &Path, csv: &Path, t0_s: f64, with_time: bool, delimit
     std::fs::write(csv, text).unwrap();
 }
 
-#[test]
-fn csv_import_replay_and_plots_recover_the_spring() {
-    let dir = tempfile::tempdir().unwrap();
+/// `jointid simulate` of the shipped spring setup: random input, noise-free, into `dir`.
+fn simulate_spring(dir: &Path, steps: usize, seed: u64) -> std::path::PathBuf {
     let setup = repo("recordings/two-beam-spring.toml");
-    let setup = setup.to_str().unwrap();
-    let sim = dir.path().join("sim.mcap");
+    let sim = dir.join("sim.mcap");
     ok(&[
         "simulate",
-        setup,
+        setup.to_str().unwrap(),
         "--out",
         sim.to_str().unwrap(),
         "--scenario",
         "random",
         "--steps",
-        "1500",
+        &steps.to_string(),
         "--seed",
-        "21",
+        &seed.to_string(),
     ]);
+    sim
+}
+
+#[test]
+fn csv_import_replay_and_plots_recover_the_spring() {
+    let dir = tempfile::tempdir().unwrap();
+    let setup = repo("recordings/two-beam-spring.toml");
+    let setup = setup.to_str().unwrap();
+    let sim = simulate_spring(dir.path(), 1500, 21);
     let csv = dir.path().join("test.csv");
     recording_to_csv(&sim, &csv, 12.5, true, ',');
     let imported = dir.path().join("imported.mcap");
@@ -132,19 +139,7 @@ fn csv_without_time_column_semicolons_and_bad_values_are_handled() {
     let dir = tempfile::tempdir().unwrap();
     let setup = repo("recordings/two-beam-spring.toml");
     let setup = setup.to_str().unwrap();
-    let sim = dir.path().join("sim.mcap");
-    ok(&[
-        "simulate",
-        setup,
-        "--out",
-        sim.to_str().unwrap(),
-        "--scenario",
-        "random",
-        "--steps",
-        "50",
-        "--seed",
-        "3",
-    ]);
+    let sim = simulate_spring(dir.path(), 50, 3);
     let csv = dir.path().join("no-time.csv");
     recording_to_csv(&sim, &csv, 0.0, false, ';');
     let out = dir.path().join("no-time.mcap");

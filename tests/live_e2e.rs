@@ -244,27 +244,45 @@ fn two_sessions_on_one_prefix_stay_apart_and_a_stalled_viewer_costs_no_input() {
     drop(viewer);
 }
 
+/// A recorded live session (`--record rec`, no final batch) fed by `acquire-sim` with
+/// `samples` samples; once `after` frames were seen published, `signal` (`-TERM`, `-KILL`)
+/// goes to `jointid live`. Returns both processes.
+fn recorded_session_signalled(
+    p: &str,
+    rec: &std::path::Path,
+    samples: u64,
+    after: u64,
+    signal: &str,
+) -> (std::process::Child, std::process::Child) {
+    let live = spawn_live(
+        p,
+        &["--record", rec.to_str().unwrap(), "--buffer-samples", "0"],
+    );
+    let acq = acquire(p, &["--samples", &samples.to_string(), "--substeps", "1"])
+        .spawn()
+        .unwrap();
+    wait_for_frames(p, "default", after);
+    let status = Command::new("kill")
+        .args([signal, &live.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    (live, acq)
+}
+
+fn stop(mut child: std::process::Child) {
+    let _ = child.kill();
+    let _ = child.wait();
+}
+
 #[test]
 fn sigterm_drains_the_stages_and_finalises_the_recording() {
     let p = prefix("term");
     let dir = tempfile::tempdir().unwrap();
     let rec = dir.path().join("stopped.mcap");
-    let live = spawn_live(
-        &p,
-        &["--record", rec.to_str().unwrap(), "--buffer-samples", "0"],
-    );
-    let mut acq = acquire(&p, &["--samples", "100000", "--substeps", "1"])
-        .spawn()
-        .unwrap();
-    wait_for_frames(&p, "default", 3000);
-    let status = Command::new("kill")
-        .args(["-TERM", &live.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
+    let (live, acq) = recorded_session_signalled(&p, &rec, 100_000, 3000, "-TERM");
     let r = report(&finish(live, Duration::from_secs(30)));
-    let _ = acq.kill();
-    let _ = acq.wait();
+    stop(acq);
     assert_eq!(r["ended"], "stopped");
     let n = r["samples"].as_u64().unwrap();
     assert!(n > 0 && n < 100_000, "{n}");
@@ -362,23 +380,10 @@ fn sigkill_loses_at_most_a_second_of_the_recording() {
     let p = prefix("kill");
     let dir = tempfile::tempdir().unwrap();
     let rec = dir.path().join("killed.mcap");
-    let live = spawn_live(
-        &p,
-        &["--record", rec.to_str().unwrap(), "--buffer-samples", "0"],
-    );
-    let mut acq = acquire(&p, &["--samples", "200000", "--substeps", "1"])
-        .spawn()
-        .unwrap();
     // 30,000 frames published while we watched (3 s at 10 kHz), then the kill.
-    wait_for_frames(&p, "default", 30_000);
-    let status = Command::new("kill")
-        .args(["-KILL", &live.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
+    let (live, acq) = recorded_session_signalled(&p, &rec, 200_000, 30_000, "-KILL");
     let _ = finish(live, Duration::from_secs(10));
-    let _ = acq.kill();
-    let _ = acq.wait();
+    stop(acq);
     let partial = jointid::io::mcap::partial_path(&rec);
     assert!(partial.exists(), "the partial recording is left");
     let inspect = Command::new(JOINTID)

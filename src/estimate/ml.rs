@@ -1316,45 +1316,34 @@ pub fn identify_ml(
             for g in (0..11).map(|i| 0.1 * f64::powi(2.0, i)) {
                 let mut cand = pt.clone();
                 cand.p[j] = g * typical;
-                if fit_stage(
+                let its = opts.screen_iterations + 3;
+                screened.extend(descend(
                     &prob,
-                    &mut cand,
+                    cand,
                     exact,
                     len,
-                    opts.screen_iterations + 3,
+                    its,
                     &others,
                     opts.free_initial_state,
-                )
-                .is_err()
-                {
-                    continue;
-                }
-                if let Ok(c) = pt_cost_len(&prob, &cand, exact, len) {
-                    screened.push((c, cand));
-                }
+                ));
             }
             screened.sort_by(|a, b| a.0.total_cmp(&b.0));
-            let mut best: Option<(f64, Point)> = None;
-            for (_, mut cand) in screened.into_iter().take(3) {
-                if fit_stage(
-                    &prob,
-                    &mut cand,
-                    exact,
-                    len,
-                    opts.max_iterations,
-                    &linear,
-                    opts.free_initial_state,
-                )
-                .is_err()
-                {
-                    continue;
-                }
-                if let Ok(c) = pt_cost_len(&prob, &cand, exact, len)
-                    && best.as_ref().is_none_or(|b| c < b.0)
-                {
-                    best = Some((c, cand));
-                }
-            }
+            let best = screened
+                .into_iter()
+                .take(3)
+                .filter_map(|(_, cand)| {
+                    let its = opts.max_iterations;
+                    descend(
+                        &prob,
+                        cand,
+                        exact,
+                        len,
+                        its,
+                        &linear,
+                        opts.free_initial_state,
+                    )
+                })
+                .min_by(|a, b| a.0.total_cmp(&b.0));
             if let Some((_, b)) = best {
                 pt = b;
                 fitted_len = len;
@@ -1370,29 +1359,23 @@ pub fn identify_ml(
     }
     if candidates.len() > 1 {
         let len = (2 * opts.first_stage_samples).max(needed).min(n_all);
-        let mut best: Option<(f64, Discretisation, Point)> = None;
-        for &d in &candidates {
-            let mut cand = pt.clone();
-            if fit_stage(
-                &prob,
-                &mut cand,
-                d,
-                len,
-                opts.max_iterations,
-                &linear,
-                opts.free_initial_state,
-            )
-            .is_err()
-            {
-                continue;
-            }
-            if let Ok(c) = pt_cost_len(&prob, &cand, d, len)
-                && best.as_ref().is_none_or(|b| c < b.0)
-            {
-                best = Some((c, d, cand));
-            }
-        }
-        if let Some((_, d, _)) = best {
+        let best = candidates
+            .iter()
+            .filter_map(|&d| {
+                let its = opts.max_iterations;
+                let (c, _) = descend(
+                    &prob,
+                    pt.clone(),
+                    d,
+                    len,
+                    its,
+                    &linear,
+                    opts.free_initial_state,
+                )?;
+                Some((c, d))
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0));
+        if let Some((_, d)) = best {
             exact = d;
         }
     }
@@ -1615,6 +1598,33 @@ fn determined(
 
 /// A force-scaled magnitude of parameter `j`: excitation RMS / RMS of its basis function
 /// along the current simulation (the force it would carry at the excitation's size).
+/// Descends from `start` over the `active` parameters (at most `iterations`) on the first
+/// `len` samples with discretisation `d`: the cost there and the point reached, or `None`
+/// when the descent or the cost fails (a diverging start is skipped, not an error).
+fn descend(
+    prob: &Problem,
+    start: Point,
+    d: Discretisation,
+    len: usize,
+    iterations: usize,
+    active: &[usize],
+    free_initial_state: bool,
+) -> Option<(f64, Point)> {
+    let mut pt = start;
+    fit_stage(
+        prob,
+        &mut pt,
+        d,
+        len,
+        iterations,
+        active,
+        free_initial_state,
+    )
+    .ok()?;
+    let cost = pt_cost_len(prob, &pt, d, len).ok()?;
+    Some((cost, pt))
+}
+
 fn typical_value(prob: &Problem, pt: &Point, j: usize, len: usize) -> Result<f64, MlError> {
     let disc = prob.discretise(
         &pt.p,
