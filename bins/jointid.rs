@@ -1,7 +1,6 @@
 //! `jointid`: command line. Parses arguments, calls the library (`jointid::app`), prints,
 //! and turns errors into a one-line cause and a non-zero exit code.
 
-use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -574,15 +573,14 @@ fn live(setup: &Setup, o: LiveOptions, json: bool) -> Result<ExitCode> {
         .create::<ipc::Service>()
         .map_err(|e| anyhow::anyhow!("iceoryx2 node for signal handling: {e:?}"))?;
     let stop = Arc::clone(&o.stop);
-    let labels_setup = setup;
-    let setup = setup.clone();
+    let worker_setup = setup.clone();
     let worker = std::thread::spawn(move || {
         let mut progress = |r: &LiveReport| {
             if !json {
                 eprint!("\r\x1b[2K{}", progress_line(r));
             }
         };
-        live::run(&setup, &o, &mut progress)
+        live::run(&worker_setup, &o, &mut progress)
     });
     while !worker.is_finished() {
         if node.wait(std::time::Duration::from_millis(50)).is_err() {
@@ -593,37 +591,7 @@ fn live(setup: &Setup, o: LiveOptions, json: bool) -> Result<ExitCode> {
         .join()
         .map_err(|_| anyhow::anyhow!("the live session panicked"))??;
     if json {
-        // The report, with `version` and `parameters` in the same shape as `replay --json`.
-        let mut v = serde_json::to_value(&report)?;
-        if let Some(obj) = v.as_object_mut() {
-            let labels = jointid::io::contract::parameter_labels(labels_setup);
-            let truth = BTreeMap::new();
-            let finals = report.final_parameters();
-            let values: Vec<f64> = labels
-                .iter()
-                .map(|l| {
-                    finals
-                        .iter()
-                        .find(|p| p.key == l.0)
-                        .map_or(f64::NAN, |p| p.value)
-                })
-                .collect();
-            let errors: Vec<f64> = labels
-                .iter()
-                .map(|l| {
-                    finals
-                        .iter()
-                        .find(|p| p.key == l.0)
-                        .map_or(f64::NAN, |p| p.std_error)
-                })
-                .collect();
-            let params = jointid::io::contract::parameters(labels_setup, &values, &errors, &truth);
-            obj.insert(
-                "version".into(),
-                jointid::io::contract::CONTRACT_VERSION.into(),
-            );
-            obj.insert("parameters".into(), serde_json::to_value(params)?);
-        }
+        let v = report.to_json(setup);
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         eprintln!();

@@ -86,8 +86,8 @@ pub fn error_line(e: &(dyn std::error::Error + 'static)) -> String {
     one_line(&line)
 }
 
-/// `text` on one line: terminal colour codes and box-drawing decoration (which some
-/// dependencies' parse errors carry) removed, every run of white space one space.
+/// `text` on one line: terminal colour codes and box-drawing characters (which the mcap
+/// crate's parse errors carry) removed, every run of white space one space.
 pub fn one_line(text: &str) -> String {
     let mut out = String::with_capacity(text.len());
     let mut chars = text.chars().peekable();
@@ -109,7 +109,6 @@ pub fn one_line(text: &str) -> String {
         }
         out.push(if c.is_whitespace() { ' ' } else { c });
     }
-    let out = out.replace("Backtrace", " ");
     out.split_whitespace().collect::<Vec<_>>().join(" ")
 }
 
@@ -150,12 +149,8 @@ pub fn simulate_recording(
 ) -> Result<SimulateSummary, AppError> {
     let sim = simulate(setup, opts)?;
     let mut w = RecordingWriter::create(out, encoding)?;
-    let mut setup_text = setup.toml_text.clone();
-    if (opts.dt_s - setup.dt_s).abs() > 1e-12 * setup.dt_s {
-        // Keep the attached setup true to the data: the replay reads dt_s from it.
-        setup_text = crate::io::csv::replace_dt(&setup_text, opts.dt_s);
-    }
-    w.attach_setup(&setup_text)?;
+    // Keep the attached setup true to the data: the replay reads dt_s from it.
+    w.attach_setup(&setup.at_rate(opts.dt_s)?.toml_text)?;
     let truth: BTreeMap<String, f64> = setup
         .param_keys()
         .into_iter()
@@ -304,6 +299,7 @@ pub(crate) fn write_results(
     data: &crate::identify::TestData,
     outcome: &ReplayOutcome,
     last_pass: &[(usize, StepOutput)],
+    prediction: &Result<Vec<Vec<f64>>, String>,
 ) -> Result<(), AppError> {
     let mut w = RecordingWriter::create(out, FrameEncoding::Json)?;
     w.attach_setup(&setup.toml_text)?;
@@ -395,9 +391,6 @@ pub(crate) fn write_results(
     let mut log = Vec::new();
     // The identified model's response to the measured excitation, for comparison with
     // the measured one (Foxglove plots both topics).
-    let prediction = crate::model::Model::assemble(setup)
-        .map_err(|e| e.to_string())
-        .and_then(|model| crate::report::predicted_response(setup, &model, data, id));
     match prediction {
         Ok(predicted) => {
             let sensors: Vec<String> = setup.sensors.iter().map(|s| s.name.clone()).collect();

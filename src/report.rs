@@ -25,7 +25,7 @@ use crate::estimate::StepOutput;
 use crate::estimate::ml::{self, Discretisation};
 use crate::identify::{Identification, TestData};
 use crate::model::Model;
-use crate::setup::Setup;
+use crate::setup::{Basis, Setup};
 
 /// One series of a plot: legend label, points, colour.
 type Series<'a> = (String, &'a [(f64, f64)], RGBColor);
@@ -70,15 +70,18 @@ pub fn fit_percent(measured: &[f64], predicted: &[f64]) -> f64 {
     100.0 * (1.0 - (err / spread).sqrt())
 }
 
-/// The identified model's response to the measured excitation (sensor-major: `[sensor][i]`).
-/// Maximum likelihood predicts with its own discretisation and estimated initial state; the
-/// other estimators from rest with the setup's sub-steps.
+/// The identified model's response to the measured excitation (sensor-major: `[sensor][i]`),
+/// on the model the identification used ([`Model::for_identification`], so a reduced
+/// model's estimated initial state fits it). Maximum likelihood predicts with its own
+/// discretisation and estimated initial state; the other estimators from rest with the
+/// sub-steps of the output-error refinement when it ran, else the setup's. `Err` says why
+/// there is no prediction (a failed identification, a diverging simulation).
 pub fn predicted_response(
     setup: &Setup,
-    model: &Model,
     data: &TestData,
     identification: &Identification,
 ) -> Result<Vec<Vec<f64>>, String> {
+    let model = &Model::for_identification(setup).map_err(|e| e.to_string())?;
     let m = setup.sensors.len();
     let rows: Vec<Vec<f64>> = if let Some(fit) = &identification.maximum_likelihood {
         let d = Discretisation {
@@ -95,13 +98,17 @@ pub fn predicted_response(
             .iter()
             .map(|p| p.value)
             .collect();
+        let substeps = identification
+            .output_error
+            .as_ref()
+            .map_or(setup.substeps, |o| o.substeps.max(1));
         crate::simulate::response_to_excitation(
             setup,
             model,
             &params,
             &data.excitation,
             setup.dt_s,
-            setup.substeps,
+            substeps,
         )
         .map_err(|e| e.to_string())?
     };
@@ -114,7 +121,8 @@ pub fn predicted_response(
         .collect())
 }
 
-/// Writes the plots into `dir` (created if needed); see the module docs.
+/// Writes the plots into `dir` (created if needed); see the module docs. `prediction` is
+/// [`predicted_response`]'s result (computed once by the caller, which also records it).
 pub fn write_plots(
     dir: &Path,
     setup: &Setup,
@@ -122,6 +130,7 @@ pub fn write_plots(
     identification: &Identification,
     last_pass: &[(usize, StepOutput)],
     truth: &BTreeMap<String, f64>,
+    prediction: &Result<Vec<Vec<f64>>, String>,
 ) -> Result<PlotSummary, ReportError> {
     std::fs::create_dir_all(dir).map_err(|source| ReportError::Io {
         path: dir.to_path_buf(),
@@ -176,7 +185,7 @@ pub fn write_plots(
         if let Some(ku) = conn
             .basis
             .iter()
-            .position(|b| b.label() == "u")
+            .position(|b| matches!(b, Basis::U))
             .and_then(|j| params.get(j).copied())
             && conn.basis.len() > 1
         {
@@ -209,9 +218,6 @@ pub fn write_plots(
     }
 
     // Measured against predicted response.
-    let prediction = Model::assemble(setup)
-        .map_err(|e| e.to_string())
-        .and_then(|model| predicted_response(setup, &model, data, identification));
     let predicted = match prediction {
         Ok(p) => Some(p),
         Err(why) => {

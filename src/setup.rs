@@ -697,6 +697,32 @@ fn one_line_toml_error(text: &str, e: &toml::de::Error) -> String {
 }
 
 impl Setup {
+    /// The setup with `[integrator] dt_s` set to `dt_s` (data at another rate than the
+    /// setup's: the model is discretised at the data's), re-read so it is checked like any
+    /// setup; every other line of the text is kept. The setup itself when the rate matches.
+    pub fn at_rate(&self, dt_s: f64) -> Result<Setup, SetupError> {
+        if (dt_s - self.dt_s).abs() <= 1e-9 * self.dt_s {
+            return Ok(self.clone());
+        }
+        let mut text = String::new();
+        let mut in_integrator = false;
+        let mut replaced = false;
+        for l in self.toml_text.lines() {
+            let t = l.trim_start();
+            if t.starts_with('[') {
+                in_integrator = t.starts_with("[integrator]");
+            }
+            if in_integrator && !replaced && t.starts_with("dt_s") {
+                text.push_str(&format!("dt_s = {dt_s:e}\n"));
+                replaced = true;
+            } else {
+                text.push_str(l);
+                text.push('\n');
+            }
+        }
+        Setup::from_toml(&text, &format!("{} at dt_s = {dt_s:e}", self.origin))
+    }
+
     pub fn from_file(path: &Path) -> Result<Self, SetupError> {
         let text =
             crate::io::read_text_capped(path, crate::io::MAX_SETUP_BYTES).map_err(|source| {

@@ -224,3 +224,53 @@ fn seeds_that_once_fell_into_wrong_minima_are_within_three_and_a_half_standard_e
         }
     }
 }
+
+/// Without `[estimator] kind`, a law linear in the state runs maximum likelihood (right on
+/// 8-sub-step data), and a record too short for it falls back to the Kalman pipeline with a
+/// note that says why.
+#[test]
+fn the_default_for_a_linear_law_is_maximum_likelihood_with_a_kalman_fallback() {
+    use jointid::identify::{IdentifyOptions, identify};
+    let with_kind = spring_uv();
+    let text: String = with_kind
+        .toml_text
+        .lines()
+        .filter(|l| !l.trim_start().starts_with("kind"))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    let setup = Setup::from_toml(&text, "spring_uv without kind").unwrap();
+    assert_eq!(setup.estimator.kind, None);
+    let opts = IdentifyOptions::from_setup(&setup);
+    let d = data(&setup, 8, 0.01, 7, 0, 2000);
+    let truth = [3.0e5, 0.0];
+    let id = identify(&setup, &d, &opts, Some(&truth), &mut |_| {}, &mut |_, _| {}).unwrap();
+    assert_eq!(id.estimator, "ml");
+    let fit = id
+        .maximum_likelihood
+        .as_ref()
+        .expect("maximum likelihood ran");
+    for (k, t) in truth.iter().enumerate() {
+        let z = (fit.params[k] - t) / fit.std_errors[k];
+        assert!(z.abs() < 3.0, "param {k}: {} ({z:.1} se)", fit.params[k]);
+    }
+    // 20 samples: fewer than maximum likelihood needs for 2 parameters and 22 states.
+    let short = data(&setup, 1, 0.01, 7, 0, 20);
+    let id = identify(
+        &setup,
+        &short,
+        &opts,
+        Some(&truth),
+        &mut |_| {},
+        &mut |_, _| {},
+    )
+    .unwrap();
+    assert_eq!(id.estimator, "kalman");
+    assert!(id.maximum_likelihood.is_none());
+    assert!(
+        id.notes
+            .iter()
+            .any(|n| n.contains("the Kalman pipeline ran instead")),
+        "{:?}",
+        id.notes
+    );
+}

@@ -175,48 +175,76 @@ pub struct ParametersMsg {
     pub parameters: Vec<ParameterMsg>,
 }
 
-/// `(key, connection, basis, unit)` of every parameter of a setup, in order.
-pub fn parameter_labels(setup: &Setup) -> Vec<(String, String, String, String)> {
+/// What names a parameter in the messages: its key, connection, basis function and unit,
+/// and the setup's true value when the setup states one for every connection.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ParameterLabel {
+    pub key: String,
+    pub connection: String,
+    pub basis: String,
+    pub unit: String,
+    pub truth: Option<f64>,
+}
+
+impl ParameterLabel {
+    /// The message for an estimate of this parameter (`std_error` may be non-finite: then
+    /// it and the interval are `null`).
+    pub fn message(&self, value: f64, std_error: f64) -> ParameterMsg {
+        let std_error = finite(std_error);
+        ParameterMsg {
+            key: self.key.clone(),
+            connection: self.connection.clone(),
+            basis: self.basis.clone(),
+            unit: self.unit.clone(),
+            value,
+            std_error,
+            ci95: std_error.map(|s| [value - 1.96 * s, value + 1.96 * s]),
+            crlb: None,
+            std_error_ols: None,
+            truth: self.truth,
+        }
+    }
+}
+
+/// The labels of every parameter of a setup, in setup order.
+pub fn parameter_labels(setup: &Setup) -> Vec<ParameterLabel> {
+    let truth = setup.truth_params();
     setup
         .connections
         .iter()
-        .flat_map(|c| {
-            c.basis.iter().map(move |b| {
-                (
-                    format!("{}.{}", c.name, b.label()),
-                    c.name.clone(),
-                    b.label(),
-                    b.unit().to_string(),
-                )
-            })
+        .flat_map(|c| c.basis.iter().map(move |b| (c, b)))
+        .enumerate()
+        .map(|(k, (c, b))| ParameterLabel {
+            key: format!("{}.{}", c.name, b.label()),
+            connection: c.name.clone(),
+            basis: b.label(),
+            unit: b.unit().to_string(),
+            truth: truth.as_ref().and_then(|t| t.get(k).copied()),
         })
         .collect()
 }
 
-/// Parameters from values and standard errors in setup order.
-pub fn parameters(
-    setup: &Setup,
-    values: &[f64],
-    std_errors: &[f64],
-    truth: &BTreeMap<String, f64>,
+/// Messages for estimates known by key (the live session's online and final values),
+/// labelled from `labels`; a key the setup does not have keeps only its key.
+pub fn parameters_by_key(
+    labels: &[ParameterLabel],
+    estimates: &[crate::pipeline::live::LiveParameter],
 ) -> Vec<ParameterMsg> {
-    parameter_labels(setup)
-        .into_iter()
-        .zip(values.iter().zip(std_errors))
-        .map(|((key, connection, basis, unit), (&value, &se))| {
-            let std_error = finite(se);
-            ParameterMsg {
-                truth: truth.get(&key).copied(),
-                key,
-                connection,
-                basis,
-                unit,
-                value,
-                std_error,
-                ci95: std_error.map(|s| [value - 1.96 * s, value + 1.96 * s]),
-                crlb: None,
-                std_error_ols: None,
-            }
+    estimates
+        .iter()
+        .map(|p| {
+            let label = labels
+                .iter()
+                .find(|l| l.key == p.key)
+                .cloned()
+                .unwrap_or_else(|| ParameterLabel {
+                    key: p.key.clone(),
+                    connection: String::new(),
+                    basis: String::new(),
+                    unit: String::new(),
+                    truth: None,
+                });
+            label.message(p.value, p.std_error)
         })
         .collect()
 }

@@ -22,6 +22,7 @@
 //! streamed to the writer.
 
 use std::collections::BTreeMap;
+use std::io::Read as _;
 use std::path::{Path, PathBuf};
 
 use serde::Serialize;
@@ -77,6 +78,8 @@ pub enum ImportError {
     },
     #[error(transparent)]
     Mcap(#[from] McapIoError),
+    #[error(transparent)]
+    Setup(#[from] crate::setup::SetupError),
 }
 
 /// How to read the CSV.
@@ -262,15 +265,11 @@ pub fn import_csv(
             None => (setup.dt_s, "setup".to_string()),
         },
     };
-    let setup_dt_replaced = (dt_s - setup.dt_s).abs() > 1e-6 * setup.dt_s;
-    let setup_text = if setup_dt_replaced {
-        replace_dt(&setup.toml_text, dt_s)
-    } else {
-        setup.toml_text.clone()
-    };
+    let setup_dt_replaced = (dt_s - setup.dt_s).abs() > 1e-9 * setup.dt_s;
+    let attached = setup.at_rate(dt_s)?;
 
     let mut writer = RecordingWriter::create(out, opts.encoding.unwrap_or(FrameEncoding::Binary))?;
-    writer.attach_setup(&setup_text)?;
+    writer.attach_setup(&attached.toml_text)?;
     let facts: BTreeMap<String, String> = [
         (
             "generator",
@@ -374,20 +373,4 @@ fn detect_delimiter(path: &Path) -> Result<u8, ImportError> {
     } else {
         b','
     })
-}
-
-use std::io::Read as _;
-
-/// The setup text with `dt_s` set to `dt` (the line is replaced; other lines are kept).
-pub fn replace_dt(text: &str, dt: f64) -> String {
-    text.lines()
-        .map(|l| {
-            if l.trim_start().starts_with("dt_s") {
-                format!("dt_s = {dt:e}")
-            } else {
-                l.to_string()
-            }
-        })
-        .collect::<Vec<_>>()
-        .join("\n")
 }

@@ -99,10 +99,8 @@ pub const SETUP_MEDIA_TYPE: &str = "application/toml";
 pub const TRUTH_METADATA: &str = "jointid.truth";
 pub const RECORDING_METADATA: &str = "jointid.recording";
 
-/// Largest chunk (compressed or decompressed) the reader accepts, so a corrupt size field
-/// cannot make it allocate without bound.
-/// Largest chunk (uncompressed) or record accepted: writers use ~1 MiB chunks; a corrupt
-/// size field must not make a small file allocate gigabytes.
+/// Largest chunk (compressed or decompressed) or record the reader accepts: writers use
+/// ~1 MiB chunks, and a corrupt size field must not make a small file allocate gigabytes.
 const CHUNK_SIZE_LIMIT: usize = 128 << 20;
 /// Largest summary section read to find the chunk index (tens of bytes per chunk).
 const SUMMARY_SIZE_LIMIT: u64 = 64 << 20;
@@ -969,7 +967,7 @@ impl FrameStream {
                             McapIoError::Corrupt { source, .. } => source.to_string(),
                             other => other.to_string(),
                         };
-                        if !self.walker.resume_after_damaged_chunk(offset, &why)? {
+                        if !self.walker.resume_after_damaged_chunk(offset, &why, true)? {
                             return Err(err);
                         }
                     }
@@ -1363,8 +1361,9 @@ struct Walker {
     in_summary: bool,
     ending: Option<Option<Truncation>>,
     /// Start offsets of the chunks listed in the file's summary (chunk indexes), sorted;
-    /// empty when the file has no readable summary. Used to resume after a damaged chunk.
-    chunk_starts: Vec<u64>,
+    /// empty when the file has no readable summary. Read only when a damaged chunk needs
+    /// it (`None` until then), so an intact file's summary is never read.
+    chunk_starts: Option<Vec<u64>>,
     /// One line per damaged chunk skipped by way of the chunk index.
     skipped: Vec<String>,
 }
@@ -1380,40 +1379,47 @@ impl Walker {
             len,
             in_summary: false,
             ending: None,
-            chunk_starts: Vec::new(),
+            chunk_starts: None,
             skipped: Vec::new(),
         };
         let magic = walker.read_magic()?;
         if magic.as_deref() != Some(::mcap::MAGIC) {
             return Err(mcap_error(path)(McapError::BadMagic));
         }
-        walker.chunk_starts = indexed_chunk_starts(path, len).unwrap_or_default();
         Ok(walker)
     }
 
     /// After the chunk at `offset` proved unreadable (`why`): moves to the next chunk the
-    /// summary's index lists after it and notes what was skipped. `false` (nothing moved)
-    /// when the file has no index or no later chunk.
-    fn resume_after_damaged_chunk(&mut self, offset: u64, why: &str) -> Result<bool, McapIoError> {
-        let Some(&next) = self.chunk_starts.iter().find(|&&start| start > offset) else {
-            // The last chunk, already read whole: the walk goes on after it.
-            if self.chunk_starts.contains(&offset) && self.pos > offset {
+    /// summary's index lists after it and notes what was skipped. A damaged last chunk that
+    /// was `read_whole` is skipped in place. `false` (nothing moved) when the file has no
+    /// index or no later chunk.
+    fn resume_after_damaged_chunk(
+        &mut self,
+        offset: u64,
+        why: &str,
+        read_whole: bool,
+    ) -> Result<bool, McapIoError> {
+        let (path, len) = (self.path.clone(), self.len);
+        let starts = self
+            .chunk_starts
+            .get_or_insert_with(|| indexed_chunk_starts(&path, len).unwrap_or_default());
+        let total = starts.len();
+        let Some(&next) = starts.iter().find(|&&start| start > offset) else {
+            if read_whole && starts.contains(&offset) {
                 self.skipped.push(format!(
-                    "chunk at byte {offset} (the last of {}) is damaged ({why}): skipped",
-                    self.chunk_starts.len()
+                    "chunk at byte {offset} (the last of {total}) is damaged ({why}): skipped"
                 ));
                 return Ok(true);
             }
             return Ok(false);
         };
-        if next >= self.len {
+        if next >= len {
             return Ok(false);
         }
-        let later = self.chunk_starts.iter().filter(|&&s| s >= next).count();
+        let later = starts.iter().filter(|&&s| s >= next).count();
         self.skipped.push(format!(
-            "chunk at byte {offset} is damaged ({why}): skipped {} bytes to the next indexed chunk at byte {next} ({later} of {} chunks follow)",
-            next - offset,
-            self.chunk_starts.len()
+            "chunk at byte {offset} is damaged ({why}): skipped {} bytes to the next indexed chunk at byte {next} ({later} of {total} chunks follow)",
+            next - offset
         ));
         self.file
             .seek(std::io::SeekFrom::Start(next))
@@ -1505,10 +1511,10 @@ impl Walker {
             if body_len > available {
                 if opcode == op::CHUNK
                     && !self.in_summary
-                    && self.chunk_starts.iter().any(|&start| start > offset)
                     && self.resume_after_damaged_chunk(
                         offset,
                         &format!("{body_len} bytes declared, {available} left in the file"),
+                        false,
                     )?
                 {
                     continue;

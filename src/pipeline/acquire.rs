@@ -22,7 +22,6 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use serde::Serialize;
 
 use crate::io::shm::{Frame, FramePublisher, ShmError, ShmOptions};
-use crate::pipeline::live::setup_at_rate;
 use crate::setup::Setup;
 use crate::simulate::{Noise, Scenario, SimulateOptions, simulate};
 
@@ -103,7 +102,7 @@ pub fn run(setup: &Setup, o: &AcquireOptions) -> Result<AcquireReport, AcquireEr
         ));
     }
     let dt = 1.0 / o.rate_hz;
-    let s = setup_at_rate(setup, dt)?;
+    let s = setup.at_rate(dt)?;
     let sim = simulate(
         &s,
         &SimulateOptions {

@@ -238,6 +238,22 @@ pub struct LiveReport {
 }
 
 impl LiveReport {
+    /// The `live --json` object: the report, with `version` and the final `parameters` in
+    /// the shape `replay --json` gives them (labels and truth from `setup`).
+    pub fn to_json(&self, setup: &Setup) -> serde_json::Value {
+        let mut v = serde_json::to_value(self).unwrap_or_default();
+        if let Some(obj) = v.as_object_mut() {
+            let labels = contract::parameter_labels(setup);
+            let params = contract::parameters_by_key(&labels, &self.final_parameters());
+            obj.insert("version".into(), CONTRACT_VERSION.into());
+            obj.insert(
+                "parameters".into(),
+                serde_json::to_value(params).unwrap_or_default(),
+            );
+        }
+        v
+    }
+
     /// The final parameters: the batch identification's when it ran, else the online fit.
     pub fn final_parameters(&self) -> Vec<LiveParameter> {
         if let Some(p) = self
@@ -692,30 +708,6 @@ enum Stepped {
     Warning(String),
 }
 
-/// The setup with `dt_s` replaced (the model is discretised at the stream's rate).
-pub fn setup_at_rate(setup: &Setup, dt_s: f64) -> Result<Setup, crate::setup::SetupError> {
-    if (dt_s - setup.dt_s).abs() <= 1e-9 * setup.dt_s {
-        return Ok(setup.clone());
-    }
-    let mut text = String::new();
-    let mut in_integrator = false;
-    let mut replaced = false;
-    for l in setup.toml_text.lines() {
-        let t = l.trim_start();
-        if t.starts_with('[') {
-            in_integrator = t.starts_with("[integrator]");
-        }
-        if in_integrator && !replaced && t.starts_with("dt_s") {
-            text.push_str(&format!("dt_s = {dt_s:e}\n"));
-            replaced = true;
-        } else {
-            text.push_str(l);
-            text.push('\n');
-        }
-    }
-    Setup::from_toml(&text, "setup at the stream's rate")
-}
-
 /// The stepper's estimator. For the Kalman filter without a setup `force_walk_std`, the
 /// random-walk std, the noise scale and the model-error std are tuned by the innovation
 /// likelihood over the warm-up samples (the tuning `replay` does per pass, here over the
@@ -875,7 +867,7 @@ fn stepper_stage(
         }
         match item {
             LiveItem::Rate(dt) => {
-                st.setup = setup_at_rate(base, dt)?;
+                st.setup = base.at_rate(dt)?;
                 if (dt - base.dt_s).abs() > 0.01 * base.dt_s {
                     ok &= send(Msg::Data(Stepped::Notice(format!(
                         "stream rate {:.1} Hz: the model is discretised at dt = {dt:.6e} s (setup dt_s {:.6e} s)",
@@ -1376,9 +1368,8 @@ struct Sink<'a> {
     last_progress: Instant,
     residual_values: Vec<f64>,
     names: Vec<String>,
-    /// `(key, connection, basis, unit)` per parameter, and the setup's truth by key.
-    labels: Vec<(String, String, String, String)>,
-    truth: std::collections::BTreeMap<String, f64>,
+    /// Names, units and truth of the parameters, for the recorded messages.
+    labels: Vec<contract::ParameterLabel>,
     dt_s: f64,
     progress: &'a mut (dyn FnMut(&LiveReport) + Send),
 }
@@ -1522,29 +1513,6 @@ impl Sink<'_> {
         self.record(|w| contract::write(w, DIAGNOSTICS_TOPIC, t, &msg));
     }
 
-    /// A published parameter in the contract's shape (labels and truth from the setup).
-    fn parameter_msg(&self, p: &LiveParameter) -> contract::ParameterMsg {
-        let (connection, basis, unit) = self
-            .labels
-            .iter()
-            .find(|l| l.0 == p.key)
-            .map(|l| (l.1.clone(), l.2.clone(), l.3.clone()))
-            .unwrap_or_default();
-        let std_error = contract::finite(p.std_error);
-        contract::ParameterMsg {
-            key: p.key.clone(),
-            connection,
-            basis,
-            unit,
-            value: p.value,
-            std_error,
-            ci95: std_error.map(|s| [p.value - 1.96 * s, p.value + 1.96 * s]),
-            crlb: None,
-            std_error_ols: None,
-            truth: self.truth.get(&p.key).copied(),
-        }
-    }
-
     fn parameters(
         &mut self,
         sample: u64,
@@ -1578,7 +1546,7 @@ impl Sink<'_> {
             pass: None,
             is_final,
             converged: None,
-            parameters: params.iter().map(|p| self.parameter_msg(p)).collect(),
+            parameters: contract::parameters_by_key(&self.labels, &params),
         };
         self.record(|w| contract::write(w, PARAMETERS_TOPIC, t_ns, &msg));
         // The session's running estimate: the online fit, or in a batch-only session
@@ -1792,15 +1760,6 @@ pub fn run(
             residual_values: Vec::new(),
             names: setup.connections.iter().map(|c| c.name.clone()).collect(),
             labels: contract::parameter_labels(setup),
-            truth: setup
-                .param_keys()
-                .into_iter()
-                .zip(setup.connections.iter().flat_map(|c| match &c.truth {
-                    Some(t) => t.iter().map(|&v| Some(v)).collect::<Vec<_>>(),
-                    None => vec![None; c.basis.len()],
-                }))
-                .filter_map(|(k, v)| Some((k, v?)))
-                .collect(),
             dt_s: setup.dt_s,
             progress,
         };
@@ -2186,11 +2145,11 @@ mod tests {
     }
 
     #[test]
-    fn setup_at_rate_replaces_only_the_integrator_step() {
+    fn at_rate_replaces_only_the_integrator_step() {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("recordings/two-beam-friction.toml");
         let s = Setup::from_file(&path).unwrap();
-        let t = setup_at_rate(&s, 1.0 / 51200.0).unwrap();
+        let t = s.at_rate(1.0 / 51200.0).unwrap();
         assert!((t.dt_s - 1.0 / 51200.0).abs() < 1e-18);
         assert_eq!(t.param_keys(), s.param_keys());
         assert_eq!(t.sensors.len(), s.sensors.len());

@@ -309,8 +309,22 @@ pub fn run(
         output: None,
         plots: None,
     };
+    // The identified model's predicted response, once, for the results file and the plots.
+    let prediction = if req.out.is_some() || req.plots.is_some() {
+        crate::report::predicted_response(&setup, &stage.data, &outcome.identification)
+    } else {
+        Err("not requested".into())
+    };
     if let Some(out) = &req.out {
-        crate::app::write_results(out, &setup, &header, &stage.data, &outcome, &last_pass)?;
+        crate::app::write_results(
+            out,
+            &setup,
+            &header,
+            &stage.data,
+            &outcome,
+            &last_pass,
+            &prediction,
+        )?;
         outcome.output = Some(out.clone());
     }
     if let Some(dir) = &req.plots {
@@ -321,6 +335,7 @@ pub fn run(
             &outcome.identification,
             &last_pass,
             &header.truth,
+            &prediction,
         )?);
     }
     Ok(outcome)
