@@ -562,17 +562,21 @@ fn run(cli: Cli) -> Result<ExitCode> {
     }
 }
 
-/// Runs a live session; the main thread watches for Ctrl-C/SIGTERM through an iceoryx2
-/// node with termination handling (no extra signal crate) and sets the stop flag.
+/// Runs a live session. The first SIGINT/SIGTERM/SIGQUIT sets the stop flag (the stages
+/// drain and finalise, the final batch identification is left to `replay`, so the session
+/// ends within a second or two); a second one exits at once with status 130, leaving the
+/// recording's `.partial` file with every chunk written so far. `signal-hook` counts the
+/// signals: iceoryx2's node signal handling reports one request again and again, so it
+/// cannot tell a second signal from the first.
 fn live(setup: &Setup, o: LiveOptions, json: bool) -> Result<ExitCode> {
-    use iceoryx2::prelude::*;
-    let config = o.shm.iceoryx_config()?;
-    let node = NodeBuilder::new()
-        .config(&config)
-        .signal_handling_mode(SignalHandlingMode::HandleTerminationRequests)
-        .create::<ipc::Service>()
-        .map_err(|e| anyhow::anyhow!("iceoryx2 node for signal handling: {e:?}"))?;
-    let stop = Arc::clone(&o.stop);
+    use signal_hook::consts::TERM_SIGNALS;
+    for &sig in TERM_SIGNALS {
+        // Order matters: the shutdown is armed by the flag the second registration sets.
+        signal_hook::flag::register_conditional_shutdown(sig, 130, Arc::clone(&o.stop))
+            .context("installing the signal handler")?;
+        signal_hook::flag::register(sig, Arc::clone(&o.stop))
+            .context("installing the signal handler")?;
+    }
     let worker_setup = setup.clone();
     let worker = std::thread::spawn(move || {
         let mut progress = |r: &LiveReport| {
@@ -582,11 +586,6 @@ fn live(setup: &Setup, o: LiveOptions, json: bool) -> Result<ExitCode> {
         };
         live::run(&worker_setup, &o, &mut progress)
     });
-    while !worker.is_finished() {
-        if node.wait(std::time::Duration::from_millis(50)).is_err() {
-            stop.store(true, std::sync::atomic::Ordering::Release);
-        }
-    }
     let report = worker
         .join()
         .map_err(|_| anyhow::anyhow!("the live session panicked"))??;

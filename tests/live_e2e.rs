@@ -244,30 +244,31 @@ fn two_sessions_on_one_prefix_stay_apart_and_a_stalled_viewer_costs_no_input() {
     drop(viewer);
 }
 
-/// A recorded live session (`--record rec`, no final batch) fed by `acquire-sim` with
-/// `samples` samples; once `after` frames were seen published, `signal` (`-TERM`, `-KILL`)
-/// goes to `jointid live`. Returns both processes.
+/// A recorded live session (`--record rec`, the default buffer for the final batch) fed by
+/// `acquire-sim` with `samples` samples; once `after` frames were seen published, each of
+/// `signals` (`-TERM`, `-KILL`) goes to `jointid live`, back to back. Returns both processes
+/// and when the signals were sent.
 fn recorded_session_signalled(
     p: &str,
     rec: &std::path::Path,
     samples: u64,
     after: u64,
-    signal: &str,
-) -> (std::process::Child, std::process::Child) {
-    let live = spawn_live(
-        p,
-        &["--record", rec.to_str().unwrap(), "--buffer-samples", "0"],
-    );
+    signals: &[&str],
+) -> (std::process::Child, std::process::Child, std::time::Instant) {
+    let live = spawn_live(p, &["--record", rec.to_str().unwrap()]);
     let acq = acquire(p, &["--samples", &samples.to_string(), "--substeps", "1"])
         .spawn()
         .unwrap();
     wait_for_frames(p, "default", after);
-    let status = Command::new("kill")
-        .args([signal, &live.id().to_string()])
+    let pid = live.id();
+    let script: Vec<String> = signals.iter().map(|s| format!("kill {s} {pid}")).collect();
+    let sent = std::time::Instant::now();
+    let status = Command::new("sh")
+        .args(["-c", &script.join("; ")])
         .status()
         .unwrap();
     assert!(status.success());
-    (live, acq)
+    (live, acq, sent)
 }
 
 fn stop(mut child: std::process::Child) {
@@ -280,10 +281,26 @@ fn sigterm_drains_the_stages_and_finalises_the_recording() {
     let p = prefix("term");
     let dir = tempfile::tempdir().unwrap();
     let rec = dir.path().join("stopped.mcap");
-    let (live, acq) = recorded_session_signalled(&p, &rec, 100_000, 3000, "-TERM");
-    let r = report(&finish(live, Duration::from_secs(30)));
+    // 3,000 samples and more are buffered for the final batch identification (about 7 s
+    // of work), which a signal leaves to `replay`: the session ends within 2 s.
+    let (live, acq, sent) = recorded_session_signalled(&p, &rec, 100_000, 3000, &["-TERM"]);
+    let out = finish(live, Duration::from_secs(30));
+    let shutdown = sent.elapsed();
+    let r = report(&out);
     stop(acq);
+    println!("shutdown took {shutdown:?}");
+    assert!(
+        shutdown < Duration::from_secs(2),
+        "SIGTERM to exit took {shutdown:?}"
+    );
     assert_eq!(r["ended"], "stopped");
+    assert!(
+        r["warnings"]
+            .to_string()
+            .contains("final batch identification over the"),
+        "{}",
+        r["warnings"]
+    );
     let n = r["samples"].as_u64().unwrap();
     assert!(n > 0 && n < 100_000, "{n}");
     // The recording was finalised (renamed from .partial) and holds every processed sample.
@@ -371,6 +388,46 @@ fn accelerometers_only_session_is_identified_by_batch_refits() {
     assert_eq!(params_of(&rv["parameters"]), params_of(&last["parameters"]));
 }
 
+/// A second signal during the shutdown exits at once (status 130), leaving the
+/// `.partial` recording readable with what was written.
+#[test]
+fn a_second_signal_exits_at_once() {
+    let p = prefix("term2");
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("twice.mcap");
+    let (mut live, acq, _) = recorded_session_signalled(&p, &rec, 100_000, 3000, &["-INT"]);
+    // Signals sent back to back can merge into one (a pending signal is not queued twice),
+    // so keep signalling every 2 ms until the process is gone: once it has handled the
+    // first, the next one arrives during the shutdown.
+    let t0 = std::time::Instant::now();
+    while live.try_wait().unwrap().is_none() && t0.elapsed() < Duration::from_secs(10) {
+        let _ = Command::new("kill")
+            .args(["-INT", &live.id().to_string()])
+            .status();
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    let out = finish(live, Duration::from_secs(30));
+    stop(acq);
+    assert_eq!(
+        out.status.code(),
+        Some(130),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let partial = jointid::io::mcap::partial_path(&rec);
+    assert!(partial.exists(), "the partial recording is left");
+    let inspect = Command::new(JOINTID)
+        .arg("inspect")
+        .arg(&partial)
+        .output()
+        .unwrap();
+    assert!(
+        inspect.status.success(),
+        "{}",
+        String::from_utf8_lossy(&inspect.stderr)
+    );
+}
+
 /// SIGKILL mid-session (issue 14): the recording left in `FILE.partial` opens, and holds
 /// every sample but at most the last second's (10 kHz: 10,000 samples), because chunks are
 /// written as they fill (about 1 MiB, well under a second of data) and a cut chunk's
@@ -381,7 +438,7 @@ fn sigkill_loses_at_most_a_second_of_the_recording() {
     let dir = tempfile::tempdir().unwrap();
     let rec = dir.path().join("killed.mcap");
     // 30,000 frames published while we watched (3 s at 10 kHz), then the kill.
-    let (live, acq) = recorded_session_signalled(&p, &rec, 200_000, 30_000, "-KILL");
+    let (live, acq, _) = recorded_session_signalled(&p, &rec, 200_000, 30_000, &["-KILL"]);
     let _ = finish(live, Duration::from_secs(10));
     stop(acq);
     let partial = jointid::io::mcap::partial_path(&rec);

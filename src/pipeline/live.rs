@@ -1256,7 +1256,18 @@ fn refitter_stage(
         }
         Err(None) => {}
     }
+    // A signal (or a fatal fault) asks for the session to end now: the batch identification
+    // (about a minute over 20,000 samples) is left to `jointid replay` on the recording,
+    // which computes the same numbers, so shutdown takes the drain and the finalising only.
+    let stopped = matches!(end, Msg::Quit { .. });
     let (identification, samples, setup_used) = match buffered {
+        Some((data, s)) if stopped => {
+            let _ = send(Msg::Data(Refitted::Warning(format!(
+                "stopped before the end of the stream: the final batch identification over the {} buffered samples was skipped so that the session ends at once; `jointid replay` on the recording computes it",
+                data.len()
+            ))));
+            (None, data.len(), s)
+        }
         Some((data, s)) if data.len() >= 3 => {
             let opts = IdentifyOptions::from_setup(&s);
             let truth = s.truth_params();
