@@ -128,13 +128,18 @@ fn run(c: Cli) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&r)?);
     } else {
         println!(
-            "published {} samples at {:.0} Hz in {:.3} s ({:.0} samples/s); {} frames unsubscribed, {} backpressure discards",
+            "published {} samples at {:.0} Hz in {:.3} s ({:.0} samples/s); {} frames unsubscribed, {} backpressure discards, {} stalled readers; publishing a block of {} took median {:.0} µs, p99 {:.0} µs, max {:.0} µs",
             r.samples_published,
             r.rate_hz,
             r.elapsed_s,
             r.achieved_rate_hz,
             r.frames_unsubscribed,
-            r.backpressure_discards
+            r.backpressure_discards,
+            r.stall_events,
+            o.block,
+            r.block_publish_us[0],
+            r.block_publish_us[1],
+            r.block_publish_us[2]
         );
     }
     Ok(())

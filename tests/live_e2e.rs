@@ -130,7 +130,19 @@ fn live_identifies_what_acquire_sim_publishes_and_the_recording_replays() {
 #[test]
 fn killed_publisher_is_reported_and_a_restarted_one_picked_up() {
     let p = prefix("restart");
-    let live = spawn_live(&p, &["--buffer-samples", "0", "--idle-timeout", "20"]);
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("restarted.mcap");
+    let live = spawn_live(
+        &p,
+        &[
+            "--buffer-samples",
+            "0",
+            "--idle-timeout",
+            "20",
+            "--record",
+            rec.to_str().unwrap(),
+        ],
+    );
     // A long run that is killed (SIGKILL: no end-of-stream, no clean-up) part-way.
     let mut first = acquire(&p, &["--samples", "200000", "--substeps", "1"])
         .spawn()
@@ -166,8 +178,58 @@ fn killed_publisher_is_reported_and_a_restarted_one_picked_up() {
     assert_eq!(f["non_finite"], 0);
     // The second run arrived completely: its last sample is the session's last.
     assert_eq!(r["last_sample"], 1999);
-    assert!(r["samples"].as_u64().unwrap() > 2000, "{}", r["samples"]);
+    let n = r["samples"].as_u64().unwrap();
+    assert!(n > 2000, "{n}");
     assert_eq!(r["ended"], "end-of-stream");
+    // One recording with both runs, nothing lost: the second run is recorded after a
+    // one-sample gap (a new segment), with a log message that gives the index mapping.
+    let inspect = Command::new(JOINTID)
+        .arg("inspect")
+        .arg(&rec)
+        .arg("--json")
+        .output()
+        .unwrap();
+    assert!(inspect.status.success());
+    let i: Value = serde_json::from_slice(&inspect.stdout).unwrap();
+    assert_eq!(i["excitation_frames"].as_u64(), Some(n), "{i}");
+    assert_eq!(i["response_frames"].as_u64(), Some(n), "{i}");
+    assert!(i["damage"].is_null(), "{i}");
+    let bytes = std::fs::read(&rec).unwrap();
+    let logs: Vec<String> = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .filter_map(|m| m.ok())
+        .filter(|m| m.channel.topic == "/jointid/log")
+        .map(|m| String::from_utf8_lossy(&m.data).into_owned())
+        .collect();
+    assert!(
+        logs.iter().any(|l| l.contains("the acquisition restarted")),
+        "{logs:?}"
+    );
+    // replay identifies the first segment, as live's final batch does, and says so.
+    let out = Command::new(JOINTID)
+        .args([
+            "replay",
+            rec.to_str().unwrap(),
+            "--estimator",
+            "paper",
+            "--passes",
+            "1",
+            "--json",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let rv: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(rv["samples"].as_u64(), Some(n - 2000), "{}", rv["samples"]);
+    assert!(
+        rv.to_string().contains("continues after a gap"),
+        "{}",
+        rv["warnings"]
+    );
 }
 
 #[test]

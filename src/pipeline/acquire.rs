@@ -78,6 +78,11 @@ pub struct AcquireReport {
     pub frames_unsubscribed: u64,
     /// Per-subscriber deliveries dropped by the bounded backpressure (a stalled reader).
     pub backpressure_discards: u64,
+    /// Subscribers waited for up to the backpressure timeout, then skipped as stalled.
+    pub stall_events: u64,
+    /// Wall time to publish one block (both streams and the notifications), µs: median,
+    /// 99th percentile and maximum. What a slow or hung reader costs the acquisition loop.
+    pub block_publish_us: [f64; 3],
     pub truth: Vec<(String, f64)>,
     pub stuck_fraction: f64,
 }
@@ -135,6 +140,7 @@ pub fn run(setup: &Setup, o: &AcquireOptions) -> Result<AcquireReport, AcquireEr
     let mut published = 0usize;
     let dt_ns = dt * 1e9;
     let mut i = 0usize;
+    let mut block_us: Vec<f64> = Vec::with_capacity(sim.excitation.len() / block + 1);
     while i < sim.excitation.len() {
         if o.stop.load(Ordering::Acquire) {
             break;
@@ -147,6 +153,7 @@ pub fn run(setup: &Setup, o: &AcquireOptions) -> Result<AcquireReport, AcquireEr
                 std::thread::sleep(due - now);
             }
         }
+        let publishing = Instant::now();
         for k in i..end {
             let sample = o.first_sample + k as u64;
             let t_ns = unix0 + (k as f64 * dt_ns).round() as u64;
@@ -170,8 +177,17 @@ pub fn run(setup: &Setup, o: &AcquireOptions) -> Result<AcquireReport, AcquireEr
         }
         exc.notify()?;
         resp.notify()?;
+        block_us.push(publishing.elapsed().as_secs_f64() * 1e6);
         i = end;
     }
+    block_us.sort_by(f64::total_cmp);
+    let pct = |q: f64| {
+        block_us
+            .get(((block_us.len() as f64 - 1.0) * q).round() as usize)
+            .copied()
+            .unwrap_or(0.0)
+    };
+    let block_publish_us = [pct(0.5), pct(0.99), pct(1.0)];
     if o.end_of_stream {
         let eos = Frame {
             sample: o.first_sample + published as u64,
@@ -191,6 +207,8 @@ pub fn run(setup: &Setup, o: &AcquireOptions) -> Result<AcquireReport, AcquireEr
         achieved_rate_hz: published as f64 / elapsed.max(1e-9),
         frames_unsubscribed: unsubscribed,
         backpressure_discards: exc.backpressure_discards() + resp.backpressure_discards(),
+        stall_events: exc.stall_events() + resp.stall_events(),
+        block_publish_us,
         truth: setup.param_keys().into_iter().zip(sim.truth).collect(),
         stuck_fraction: sim.stuck_fraction,
     })

@@ -76,7 +76,7 @@ use crate::identify::{
     check_observability, identify, tune_kalman,
 };
 use crate::io::Frame;
-use crate::io::contract::{self, CONTRACT_VERSION};
+use crate::io::contract::{self, CONTRACT_VERSION, LOG_TOPIC, LogLevel, LogMsg};
 use crate::io::mcap::{
     DIAGNOSTICS_TOPIC, InputTopic, PARAMETERS_TOPIC, RECORDING_METADATA, RESIDUALS_TOPIC,
     RecordingWriter, TRUTH_METADATA,
@@ -1378,6 +1378,11 @@ struct Sink<'a> {
     first_t_ns: Option<u64>,
     last_progress: Instant,
     residual_values: Vec<f64>,
+    /// Recorded sample index = acquisition index + `record_offset`: a restarted acquisition
+    /// counts from 0 again, and the recording's indices must increase, so its run is
+    /// recorded after a one-sample gap (a new segment for `replay`), with a log message.
+    record_offset: u64,
+    last_recorded: Option<u64>,
     names: Vec<String>,
     /// Names, units and truth of the parameters, for the recorded messages.
     labels: Vec<contract::ParameterLabel>,
@@ -1409,7 +1414,28 @@ impl Sink<'_> {
         self.report.first_sample.get_or_insert(a.sample);
         self.report.last_sample = Some(a.sample);
         self.last_at = Some(Instant::now());
-        let (s, t) = (a.sample, a.t_ns);
+        let t = a.t_ns;
+        let mut s = a.sample + self.record_offset;
+        if self.recorder.is_some()
+            && let Some(last) = self.last_recorded
+            && s <= last
+        {
+            // A new run of the acquisition (the aligner accepted the index going back).
+            self.record_offset = last + 2 - a.sample;
+            s = last + 2;
+            let msg = LogMsg::new(
+                t,
+                LogLevel::Warning,
+                "jointid.live",
+                format!(
+                    "the acquisition restarted: its sample {} is recorded as sample {s} (a new segment after a one-sample gap; recorded index = acquisition index + {})",
+                    a.sample, self.record_offset
+                ),
+            );
+            self.record(|w| contract::write(w, LOG_TOPIC, t, &msg));
+        }
+        self.last_recorded = Some(s);
+        let offset = self.record_offset;
         self.record(|w| {
             w.write_excitation(&Frame {
                 sample: s,
@@ -1441,7 +1467,7 @@ impl Sink<'_> {
                 let msg = contract::ResidualsMsg {
                     version: CONTRACT_VERSION,
                     timestamp: contract::Time::from_ns(t),
-                    sample: o.sample,
+                    sample: o.sample + offset,
                     t_ns: t,
                     source: contract::Source::Live,
                     pass: 0,
@@ -1769,6 +1795,8 @@ pub fn run(
             first_t_ns: None,
             last_progress: Instant::now(),
             residual_values: Vec::new(),
+            record_offset: 0,
+            last_recorded: None,
             names: setup.connections.iter().map(|c| c.name.clone()).collect(),
             labels: contract::parameter_labels(setup),
             dt_s: setup.dt_s,

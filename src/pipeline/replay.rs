@@ -120,7 +120,17 @@ fn identify_stage(
             }
         }
     }
-    if let Some(e) = fault {
+    if let Some(AlignError::Gap { prev, got }) = fault {
+        // Lost frames or a restarted acquisition in a live recording: the time stepping
+        // cannot cross it, so the first segment is identified, as `jointid live`'s final
+        // batch identification does.
+        input_warnings.push(format!(
+            "{}: the recording continues after a gap (sample {prev} is followed by {got}: frames lost, or the acquisition restarted); the first segment, samples {}–{prev} ({} samples), was identified and the rest was not",
+            path.display(),
+            data.samples.first().copied().unwrap_or(0),
+            data.len()
+        ));
+    } else if let Some(e) = fault {
         let cut = input_error.is_some() || !input_warnings.is_empty();
         let ragged = matches!(e, AlignError::Unpaired { .. }) && cut;
         if !ragged && input_error.is_none() {
