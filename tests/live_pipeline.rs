@@ -110,6 +110,12 @@ fn pipeline_replay_keeps_the_samples_before_a_bad_one() {
     };
     let o = app::replay(&req, &mut |_| {}).unwrap();
     assert_eq!(o.samples, 700, "samples 0..=699 are kept");
-    let e = o.input_error.expect("the gap is reported");
-    assert!(e.contains("699") && e.contains("701"), "{e}");
+    // A gap ends the first segment (lost frames or a restarted acquisition in a live
+    // recording): a warning, not an error.
+    assert!(o.input_error.is_none(), "{:?}", o.input_error);
+    let w = o.input_warnings.join("\n");
+    assert!(
+        w.contains("699 is followed by 701") && w.contains("first segment"),
+        "{w}"
+    );
 }
