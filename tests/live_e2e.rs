@@ -39,9 +39,15 @@ fn wait_for_frames(prefix: &str, session: &str, n: u64) {
 
 /// `jointid replay RECORDING --json`, which must succeed.
 fn replay_json(rec: &std::path::Path) -> Value {
+    replay_json_with(rec, &[])
+}
+
+/// `jointid replay REC ARGS --json`, parsed; fails the test if it exits non-zero.
+fn replay_json_with(rec: &std::path::Path, args: &[&str]) -> Value {
     let replay = Command::new(JOINTID)
         .arg("replay")
         .arg(rec)
+        .args(args)
         .arg("--json")
         .output()
         .unwrap();
@@ -51,6 +57,22 @@ fn replay_json(rec: &std::path::Path) -> Value {
         String::from_utf8_lossy(&replay.stderr)
     );
     serde_json::from_slice(&replay.stdout).unwrap()
+}
+
+/// `jointid inspect REC --json`, parsed; fails the test if it exits non-zero.
+fn inspect_json(rec: &std::path::Path) -> Value {
+    let inspect = Command::new(JOINTID)
+        .arg("inspect")
+        .arg(rec)
+        .arg("--json")
+        .output()
+        .unwrap();
+    assert!(
+        inspect.status.success(),
+        "{}",
+        String::from_utf8_lossy(&inspect.stderr)
+    );
+    serde_json::from_slice(&inspect.stdout).unwrap()
 }
 
 fn params_of(v: &Value) -> Vec<(String, f64)> {
@@ -183,14 +205,7 @@ fn killed_publisher_is_reported_and_a_restarted_one_picked_up() {
     assert_eq!(r["ended"], "end-of-stream");
     // One recording with both runs, nothing lost: the second run is recorded after a
     // one-sample gap (a new segment), with a log message that gives the index mapping.
-    let inspect = Command::new(JOINTID)
-        .arg("inspect")
-        .arg(&rec)
-        .arg("--json")
-        .output()
-        .unwrap();
-    assert!(inspect.status.success());
-    let i: Value = serde_json::from_slice(&inspect.stdout).unwrap();
+    let i = inspect_json(&rec);
     assert_eq!(i["excitation_frames"].as_u64(), Some(n), "{i}");
     assert_eq!(i["response_frames"].as_u64(), Some(n), "{i}");
     assert!(i["damage"].is_null(), "{i}");
@@ -206,24 +221,7 @@ fn killed_publisher_is_reported_and_a_restarted_one_picked_up() {
         "{logs:?}"
     );
     // replay identifies the first segment, as live's final batch does, and says so.
-    let out = Command::new(JOINTID)
-        .args([
-            "replay",
-            rec.to_str().unwrap(),
-            "--estimator",
-            "paper",
-            "--passes",
-            "1",
-            "--json",
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let rv: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let rv = replay_json_with(&rec, &["--estimator", "paper", "--passes", "1"]);
     assert_eq!(rv["samples"].as_u64(), Some(n - 2000), "{}", rv["samples"]);
     assert!(
         rv.to_string().contains("continues after a gap"),
@@ -368,18 +366,7 @@ fn sigterm_drains_the_stages_and_finalises_the_recording() {
     // The recording was finalised (renamed from .partial) and holds every processed sample.
     assert!(rec.exists(), "recording not finalised");
     assert!(!jointid::io::mcap::partial_path(&rec).exists());
-    let inspect = Command::new(JOINTID)
-        .arg("inspect")
-        .arg(&rec)
-        .arg("--json")
-        .output()
-        .unwrap();
-    assert!(
-        inspect.status.success(),
-        "{}",
-        String::from_utf8_lossy(&inspect.stdout)
-    );
-    let i: Value = serde_json::from_slice(&inspect.stdout).unwrap();
+    let i = inspect_json(&rec);
     assert_eq!(i["excitation_frames"].as_u64(), Some(n));
     assert_eq!(i["response_frames"].as_u64(), Some(n));
     assert!(i["damage"].is_null());
@@ -478,16 +465,7 @@ fn a_second_signal_exits_at_once() {
     );
     let partial = jointid::io::mcap::partial_path(&rec);
     assert!(partial.exists(), "the partial recording is left");
-    let inspect = Command::new(JOINTID)
-        .arg("inspect")
-        .arg(&partial)
-        .output()
-        .unwrap();
-    assert!(
-        inspect.status.success(),
-        "{}",
-        String::from_utf8_lossy(&inspect.stderr)
-    );
+    inspect_json(&partial);
 }
 
 /// SIGKILL mid-session (issue 14): the recording left in `FILE.partial` opens, and holds
@@ -505,18 +483,7 @@ fn sigkill_loses_at_most_a_second_of_the_recording() {
     stop(acq);
     let partial = jointid::io::mcap::partial_path(&rec);
     assert!(partial.exists(), "the partial recording is left");
-    let inspect = Command::new(JOINTID)
-        .arg("inspect")
-        .arg(&partial)
-        .arg("--json")
-        .output()
-        .unwrap();
-    assert!(
-        inspect.status.success(),
-        "{}",
-        String::from_utf8_lossy(&inspect.stderr)
-    );
-    let i: Value = serde_json::from_slice(&inspect.stdout).unwrap();
+    let i = inspect_json(&partial);
     let frames = i["excitation_frames"].as_u64().unwrap();
     println!("recovered {frames} frames; damage: {}", i["damage"]);
     assert!(
