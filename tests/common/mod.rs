@@ -48,6 +48,18 @@ pub fn setup_variant(
     model_substeps: usize,
 ) -> jointid::setup::Setup {
     let path = repo(&format!("recordings/{file}"));
+    let text = setup_variant_text(file, basis, truth, model_substeps);
+    jointid::setup::Setup::from_toml(&text, &path.display().to_string()).expect("valid variant")
+}
+
+/// The TOML text of [`setup_variant`], for tests that hand a setup file to the binary.
+pub fn setup_variant_text(
+    file: &str,
+    basis: &[&str],
+    truth: &[f64],
+    model_substeps: usize,
+) -> String {
+    let path = repo(&format!("recordings/{file}"));
     let text = std::fs::read_to_string(&path).expect("shipped setup");
     let list = |v: Vec<String>| v.join(", ");
     let text: String = text
@@ -74,5 +86,5 @@ pub fn setup_variant(
         })
         .collect::<Vec<_>>()
         .join("\n");
-    jointid::setup::Setup::from_toml(&text, &path.display().to_string()).expect("valid variant")
+    text
 }
