@@ -1064,7 +1064,7 @@ fn finish_with_output_error(
             Ok((r, raised)) => {
                 if raised > opts.substeps {
                     result.notes.push(format!(
-                        "prediction-error refinement with {raised} model sub-steps per sample instead of {}: each doubling raised the innovation likelihood of the start values by more than the noise explains",
+                        "prediction-error refinement with {raised} model sub-steps per sample instead of {}: the likeliest level of the tuned innovation likelihood at the start values (every doubling up to 64 tried; the coarsest within 3 standard deviations of the best kept)",
                         opts.substeps
                     ));
                 }

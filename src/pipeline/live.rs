@@ -16,7 +16,8 @@
 //! sent it, the source sends [`Msg::Flush`]: every stage finishes, the final refit runs,
 //! the recording is finalised and `live` exits 0. Other ends: `--samples N` (after N
 //! aligned samples), `--seconds S` (S seconds after the first frame), Ctrl-C or SIGTERM
-//! (a `Quit` without error: the same draining and finalising), and `--idle-timeout`
+//! (a `Quit` without error: the same draining and finalising, without the final batch
+//! identification — see below), and `--idle-timeout`
 //! seconds with no publisher after one vanished without an end-of-stream frame (a killed
 //! acquisition program that is not restarted). A vanished publisher alone does not end
 //! the session: it is reported, and a restarted one is picked up.
@@ -32,7 +33,7 @@
 //! | non-finite value | the sample is dropped and counted (`non_finite`); the next one starts a new segment |
 //! | excitation and response time stamps of one sample differ by more than dt/2, or the stream interval differs from the rate in use by more than 1 % | fatal: `Quit` with an error naming both, outputs finalised, exit non-zero |
 //! | wrong channel count | fatal, naming the stream, sample and counts |
-//! | publisher killed | reported (`publisher gone without end-of-stream`), dead node cleaned by the subscriber, a restarted publisher is picked up |
+//! | publisher killed | reported (`publisher gone without end-of-stream`), dead node cleaned by the subscriber, a restarted publisher is picked up; the recording takes its run after a one-sample gap (the sink's `record_offset`) |
 //! | slow viewer of our outputs | the outgoing queues are bounded and written with `try_send`: outputs are dropped and counted (`outputs_dropped`), never the input path |
 //! | two sessions on one machine | `--prefix` (iceoryx2 `global.prefix`) and `--session` keep them apart |
 //!
@@ -46,7 +47,8 @@
 //! fit every `--refit-every` samples. These *online* values are what a single filter
 //! pass can give; they are not the identification's final answer.
 //!
-//! At the end of the stream, the refitter runs the full identification
+//! At the end of the stream (not after a signal or a fatal fault: they ask to stop now, and
+//! leave the batch to `jointid replay` on the recording), the refitter runs the full identification
 //! ([`crate::identify::identify`], the same code as `jointid replay`) over the first
 //! segment's buffered samples (at most `--buffer-samples`), so the final parameters equal
 //! those of `jointid replay session.mcap` on the recorded session (replay also stops at
