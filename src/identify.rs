@@ -1056,12 +1056,26 @@ fn finish_with_output_error(
                     r.report.cost_end
                 ));
             }
-            Ok((r, _)) if let Some(why) = pem_undetermined(setup, &r) => {
+            Ok((r, _)) if let Some(why) = pem_undetermined(setup, &r, &values, &scales) => {
                 result.notes.push(format!(
                     "prediction-error refinement not used: {why}; the free-run output error is used"
                 ));
             }
             Ok((r, raised)) => {
+                let keys = setup.param_keys();
+                let flat: Vec<Basis> = setup
+                    .connections
+                    .iter()
+                    .flat_map(|c| c.basis.iter().copied())
+                    .collect();
+                for (j, b) in flat.iter().enumerate() {
+                    if matches!(b, Basis::SignU | Basis::SignV) && r.values[j] <= 0.0 {
+                        result.notes.push(format!(
+                            "`{}` ended on its bound 0: no friction detected (the residual-force estimate gave {:.4e} ± {:.3e}); its standard error is that of the one-sided sensitivity",
+                            keys[j], values[j], scales[j]
+                        ));
+                    }
+                }
                 if raised > opts.substeps {
                     result.notes.push(format!(
                         "prediction-error refinement with {raised} model sub-steps per sample instead of {}: the likeliest level of the tuned innovation likelihood at the start values (every doubling up to 64 tried; the coarsest within 3 standard deviations of the best kept)",

@@ -162,6 +162,51 @@ pub struct TruthSystem {
     gamma: f64,
     beta: f64,
     status: Vec<Status>,
+    /// Work buffers of [`TruthSystem::substep`] (a sub-step runs millions of times per
+    /// identification; allocating its temporaries was a third of the time).
+    work: Work,
+}
+
+/// Preallocated temporaries of one sub-step: `n`-vectors of the predictor, `q`-vectors and
+/// the `q × q` Jacobian of the force solve.
+#[derive(Clone)]
+struct Work {
+    ut: DVector<f64>,
+    vt: DVector<f64>,
+    rhs: DVector<f64>,
+    a0: DVector<f64>,
+    tmp: DVector<f64>,
+    d0: DVector<f64>,
+    v0: DVector<f64>,
+    da0: DVector<f64>,
+    f: DVector<f64>,
+    d: DVector<f64>,
+    dv: DVector<f64>,
+    da: DVector<f64>,
+    e: DVector<f64>,
+    j: DMatrix<f64>,
+}
+
+impl Work {
+    fn new(n: usize, q: usize) -> Self {
+        let (vn, vq) = (DVector::zeros(n), DVector::zeros(q));
+        Self {
+            ut: vn.clone(),
+            vt: vn.clone(),
+            rhs: vn.clone(),
+            a0: vn.clone(),
+            tmp: vn,
+            d0: vq.clone(),
+            v0: vq.clone(),
+            da0: vq.clone(),
+            f: vq.clone(),
+            d: vq.clone(),
+            dv: vq.clone(),
+            da: vq.clone(),
+            e: vq,
+            j: DMatrix::zeros(q, q),
+        }
+    }
 }
 
 impl TruthSystem {
@@ -233,8 +278,8 @@ impl TruthSystem {
                 }
             })
             .collect();
-        let _ = q;
         Ok(Self {
+            work: Work::new(model.n(), q),
             model: model.clone(),
             meff_inv,
             Y,
@@ -294,77 +339,93 @@ impl TruthSystem {
         (f, fd, fv, fa)
     }
 
-    /// Solve the connection forces for one sub-step given the free predictions.
-    fn solve_forces(
-        &mut self,
-        d0: &DVector<f64>,
-        v0: &DVector<f64>,
-        a0: &DVector<f64>,
-    ) -> Option<DVector<f64>> {
+    /// Solve the connection forces for one sub-step given the free predictions
+    /// (`work.d0`, `work.v0`, `work.da0`: δ, δ̇, δ̈ with no connection force); the forces are
+    /// left in `work.f`. Returns `None` when Newton fails.
+    fn solve_forces(&mut self) -> Option<()> {
         let q = self.blocks.len();
         let (bh2, gh) = (self.beta * self.h * self.h, self.gamma * self.h);
         // Initial status guesses.
         for c in 0..q {
             if let Some(s) = &self.blocks[c].2 {
-                let x0 = if s.on_velocity { v0[c] } else { d0[c] };
+                let x0 = if s.on_velocity {
+                    self.work.v0[c]
+                } else {
+                    self.work.d0[c]
+                };
                 if self.status[c] != Status::Stick {
                     self.status[c] = Status::Slip(if x0 >= 0.0 { 1.0 } else { -1.0 });
                 }
             }
         }
         let mut seen: Vec<Vec<Status>> = Vec::new();
-        let mut f = DVector::zeros(q);
+        self.work.f.fill(0.0);
         for _round in 0..16 {
             // Newton for the current statuses.
             let mut ok = false;
             let mut prev_step = f64::INFINITY;
             let mut last_step = f64::INFINITY;
             for _it in 0..60 {
+                let w = &mut self.work;
                 // Size of the terms that are summed: round-off in the residual is relative
                 // to it, not to the (possibly much smaller) net force.
-                let mut mag = 1.0 + f.amax();
-                let d = d0 - &self.G * &f * bh2;
-                let dv = v0 - &self.G * &f * gh;
-                let da = a0 - &self.G * &f;
-                let mut e = DVector::zeros(q);
-                let mut j = DMatrix::zeros(q, q);
+                let mut mag = 1.0 + w.f.amax();
+                w.d.copy_from(&w.d0);
+                w.d.gemv(-bh2, &self.G, &w.f, 1.0);
+                w.dv.copy_from(&w.v0);
+                w.dv.gemv(-gh, &self.G, &w.f, 1.0);
+                w.da.copy_from(&w.da0);
+                w.da.gemv(-1.0, &self.G, &w.f, 1.0);
                 for c in 0..q {
+                    let (dc, dvc, dac) = (self.work.d[c], self.work.dv[c], self.work.da[c]);
                     match self.status[c] {
                         Status::Stick => {
                             let Some(s) = &self.blocks[c].2 else {
                                 unreachable!()
                             };
                             let k = if s.on_velocity { gh } else { bh2 };
-                            e[c] = if s.on_velocity { dv[c] } else { d[c] };
+                            self.work.e[c] = if s.on_velocity { dvc } else { dc };
                             for m in 0..q {
-                                j[(c, m)] = -k * self.G[(c, m)];
+                                self.work.j[(c, m)] = -k * self.G[(c, m)];
                             }
                         }
                         st => {
-                            let (phi, fd, fv, fa) = self.smooth(c, d[c], dv[c], da[c]);
+                            let (phi, fd, fv, fa) = self.smooth(c, dc, dvc, dac);
                             let fric = match (st, &self.blocks[c].2) {
                                 (Status::Slip(s), Some(t)) => s * t.level,
                                 _ => 0.0,
                             };
-                            e[c] = f[c] - phi - fric;
+                            self.work.e[c] = self.work.f[c] - phi - fric;
                             mag = mag.max(fric.abs()).max(
                                 self.blocks[c]
                                     .0
                                     .iter()
                                     .zip(&self.blocks[c].1)
-                                    .map(|(b, p)| (p * b.eval(d[c], dv[c], da[c])).abs())
+                                    .map(|(b, p)| (p * b.eval(dc, dvc, dac)).abs())
                                     .fold(0.0, f64::max),
                             );
                             for m in 0..q {
                                 let dd = if c == m { 1.0 } else { 0.0 };
-                                j[(c, m)] = dd + (fd * bh2 + fv * gh + fa) * self.G[(c, m)];
+                                self.work.j[(c, m)] =
+                                    dd + (fd * bh2 + fv * gh + fa) * self.G[(c, m)];
                             }
                         }
                     }
                 }
-                let step = j.lu().solve(&e)?;
-                f -= &step;
-                let size = step.amax();
+                let w = &mut self.work;
+                // One connection (the common case): a scalar division, no factorisation.
+                let size = if q == 1 {
+                    let step = w.e[0] / w.j[(0, 0)];
+                    if !step.is_finite() {
+                        return None;
+                    }
+                    w.f[0] -= step;
+                    step.abs()
+                } else {
+                    let step = w.j.clone().lu().solve(&w.e)?;
+                    w.f -= &step;
+                    step.amax()
+                };
                 last_step = size;
                 // Converged: the step is at round-off of the summed terms, or it stopped
                 // shrinking at a level far below any physical force (a linear law converges
@@ -378,26 +439,31 @@ impl TruthSystem {
             // A stuck joint's equation has the tiny slope γhG or βh²G, so round-off in its
             // solve is ~ε|δ̇₀|/(γhG): settle for that (the 1e-14 target alone made Newton
             // fail on stiff stuck joints with many sub-steps).
-            if !ok && last_step <= 1e-8 * (1.0 + f.amax()) {
+            if !ok && last_step <= 1e-8 * (1.0 + self.work.f.amax()) {
                 ok = true;
             }
             if !ok {
                 return None;
             }
             // Check the statuses.
-            let d = d0 - &self.G * &f * bh2;
-            let dv = v0 - &self.G * &f * gh;
-            let da = a0 - &self.G * &f;
+            let w = &mut self.work;
+            w.d.copy_from(&w.d0);
+            w.d.gemv(-bh2, &self.G, &w.f, 1.0);
+            w.dv.copy_from(&w.v0);
+            w.dv.gemv(-gh, &self.G, &w.f, 1.0);
+            w.da.copy_from(&w.da0);
+            w.da.gemv(-1.0, &self.G, &w.f, 1.0);
             let mut changed = false;
             let before = self.status.clone();
             for c in 0..q {
                 let Some(s) = &self.blocks[c].2 else { continue };
                 let level = s.level;
-                let x = if s.on_velocity { dv[c] } else { d[c] };
+                let (dc, dvc, dac) = (self.work.d[c], self.work.dv[c], self.work.da[c]);
+                let x = if s.on_velocity { dvc } else { dc };
                 match self.status[c] {
                     Status::Stick => {
-                        let (phi, ..) = self.smooth(c, d[c], dv[c], da[c]);
-                        let lambda = f[c] - phi;
+                        let (phi, ..) = self.smooth(c, dc, dvc, dac);
+                        let lambda = self.work.f[c] - phi;
                         if lambda.abs() > level * (1.0 + 1e-12) {
                             self.status[c] = Status::Slip(lambda.signum());
                             changed = true;
@@ -413,7 +479,7 @@ impl TruthSystem {
                 }
             }
             if !changed {
-                return Some(f);
+                return Some(());
             }
             if seen.contains(&self.status) {
                 // Cycling between slip directions: the consistent answer is to stick.
@@ -425,26 +491,49 @@ impl TruthSystem {
             }
             seen.push(before);
         }
-        Some(f)
+        Some(())
     }
 
     /// One Newmark sub-step with excitation `p`. Returns the connection forces.
     fn substep(&mut self, s: &mut State, p: &DVector<f64>) -> Option<DVector<f64>> {
+        self.substep_in_place(s, p)?;
+        Some(self.work.f.clone())
+    }
+
+    /// One Newmark sub-step with excitation `p`, the connection forces left in `work.f`;
+    /// no allocation.
+    fn substep_in_place(&mut self, s: &mut State, p: &DVector<f64>) -> Option<()> {
         let (h, g, b) = (self.h, self.gamma, self.beta);
         let m = &self.model;
-        let ut = &s.u + &s.v * h + &s.a * ((0.5 - b) * h * h);
-        let vt = &s.v + &s.a * ((1.0 - g) * h);
-        let rhs = &m.Lp * p - &m.C * &vt - &m.K * &ut;
-        let a0 = &self.meff_inv * rhs;
-        let lct = m.Lc.transpose();
-        let d0 = &lct * (&ut + &a0 * (b * h * h));
-        let v0 = &lct * (&vt + &a0 * (g * h));
-        let da0 = &lct * &a0;
-        let f = self.solve_forces(&d0, &v0, &da0)?;
-        s.a = a0 - &self.Y * &f;
-        s.u = ut + &s.a * (b * h * h);
-        s.v = vt + &s.a * (g * h);
-        Some(f)
+        let w = &mut self.work;
+        // Newmark predictors ũ = u + h u̇ + (½ − β) h² ü, ṽ = u̇ + (1 − γ) h ü.
+        w.ut.copy_from(&s.u);
+        w.ut.axpy(h, &s.v, 1.0);
+        w.ut.axpy((0.5 - b) * h * h, &s.a, 1.0);
+        w.vt.copy_from(&s.v);
+        w.vt.axpy((1.0 - g) * h, &s.a, 1.0);
+        // Acceleration with no connection force: M_eff a₀ = Lp p − C ṽ − K ũ.
+        w.rhs.gemv(1.0, &m.Lp, p, 0.0);
+        w.rhs.gemv(-1.0, &m.C, &w.vt, 1.0);
+        w.rhs.gemv(-1.0, &m.K, &w.ut, 1.0);
+        w.a0.gemv(1.0, &self.meff_inv, &w.rhs, 0.0);
+        // Free connection deformation, rate and acceleration.
+        w.tmp.copy_from(&w.ut);
+        w.tmp.axpy(b * h * h, &w.a0, 1.0);
+        w.d0.gemv_tr(1.0, &m.Lc, &w.tmp, 0.0);
+        w.tmp.copy_from(&w.vt);
+        w.tmp.axpy(g * h, &w.a0, 1.0);
+        w.v0.gemv_tr(1.0, &m.Lc, &w.tmp, 0.0);
+        w.da0.gemv_tr(1.0, &m.Lc, &w.a0, 0.0);
+        self.solve_forces()?;
+        let w = &mut self.work;
+        s.a.copy_from(&w.a0);
+        s.a.gemv(-1.0, &self.Y, &w.f, 1.0);
+        s.u.copy_from(&w.ut);
+        s.u.axpy(b * h * h, &s.a, 1.0);
+        s.v.copy_from(&w.vt);
+        s.v.axpy(g * h, &s.a, 1.0);
+        Some(())
     }
 
     pub fn any_stuck(&self) -> bool {
@@ -566,7 +655,8 @@ fn response_implicit(
                 );
                 pt[j] = x0 + t * (x1 - x0);
             }
-            sys.substep(&mut s, &pt).ok_or(SimulateError::Diverged(i))?;
+            sys.substep_in_place(&mut s, &pt)
+                .ok_or(SimulateError::Diverged(i))?;
         }
         if !s.is_finite() {
             return Err(SimulateError::Diverged(i));
@@ -666,7 +756,8 @@ pub fn predictions_with_observer(
                 );
                 pt[j] = x0 + t * (x1 - x0);
             }
-            sys.substep(&mut s, &pt).ok_or(SimulateError::Diverged(i))?;
+            sys.substep_in_place(&mut s, &pt)
+                .ok_or(SimulateError::Diverged(i))?;
         }
         if !s.is_finite() {
             return Err(SimulateError::Diverged(i));
