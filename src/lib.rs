@@ -24,6 +24,7 @@
 //! - [`identify`]: passes over data (Step VI), stopping rule, stuck-sample handling.
 //! - [`simulate`]: synthetic tests with a known truth.
 //! - [`track`]: parameters as they change during a test (forgetting, periodic solves).
+//! - [`par`]: order-preserving parallel map over independent simulations.
 //! - [`align`]: joins excitation and response frames, checks gaps and values.
 //! - [`io`]: MCAP recordings (the data contract is in the module docs and docs/CONTRACTS.md).
 //! - [`pipeline`]: source → aligner → stepper → refitter → sinks on threads (replay and live).
@@ -36,6 +37,7 @@ pub mod integrate;
 pub mod io;
 pub mod matrix_market;
 pub mod model;
+pub mod par;
 pub mod pipeline;
 pub mod report;
 pub mod setup;

@@ -237,22 +237,44 @@ fn jacobian(
     resp: &[Vec<f64>],
     substeps: usize,
 ) -> Result<Jac, SimulateError> {
-    let (r, cost) = innovations(setup, model, p, pred, exc, resp, substeps)?;
+    // The base point and every displaced point are independent simulations: run them on
+    // parallel threads (`crate::par`), then difference.
+    let steps: Vec<f64> = (0..p.len())
+        .map(|j| {
+            (SECANT * scales[j].abs())
+                .max(1e-7 * p[j].abs())
+                .max(f64::MIN_POSITIVE.sqrt())
+        })
+        .collect();
+    let mut points: Vec<Vec<f64>> = vec![p.to_vec()];
+    for j in 0..p.len() {
+        let mut plus = p.to_vec();
+        plus[j] += steps[j];
+        points.push(plus);
+        // One-sided at a friction level's bound 0 (the simulator cannot run a negative one).
+        if !(is_sign(&basis[j]) && p[j] - steps[j] < 0.0) {
+            let mut minus = p.to_vec();
+            minus[j] -= steps[j];
+            points.push(minus);
+        }
+    }
+    let mut runs = crate::par::map(&points, |q| {
+        innovations(setup, model, q, pred, exc, resp, substeps)
+    })
+    .into_iter();
+    let Some(base) = runs.next() else {
+        return Err(SimulateError::Singular);
+    };
+    let (r, cost) = base?;
     let mut cols = Vec::with_capacity(p.len());
     for j in 0..p.len() {
-        let h = (SECANT * scales[j].abs())
-            .max(1e-7 * p[j].abs())
-            .max(f64::MIN_POSITIVE.sqrt());
-        let mut plus = p.to_vec();
-        plus[j] += h;
-        let (rp, _) = innovations(setup, model, &plus, pred, exc, resp, substeps)?;
+        let h = steps[j];
+        let (rp, _) = runs.next().ok_or(SimulateError::Singular)??;
         // Columns of ∂ŷ/∂p in normalised units: the residual is y − ŷ, so −∂r/∂p.
         let col: Vec<f64> = if is_sign(&basis[j]) && p[j] - h < 0.0 {
             rp.iter().zip(&r).map(|(a, b)| -(a - b) / h).collect()
         } else {
-            let mut minus = p.to_vec();
-            minus[j] -= h;
-            let (rm, _) = innovations(setup, model, &minus, pred, exc, resp, substeps)?;
+            let (rm, _) = runs.next().ok_or(SimulateError::Singular)??;
             rp.iter()
                 .zip(&rm)
                 .map(|(a, b)| -(a - b) / (2.0 * h))

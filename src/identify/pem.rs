@@ -205,14 +205,17 @@ pub(super) fn refine_by_prediction_error(
         }
         levels.push(last * 2);
     }
-    let tuned: Vec<(usize, f64, f64)> = levels
-        .iter()
-        .map(|&l| {
-            let (f, ll) = tune_pem_force(setup, model, data, sigma, start, l);
-            (l, f, ll)
-        })
-        .filter(|(_, _, ll)| ll.is_finite())
-        .collect();
+    // The levels are independent: tuned on parallel threads, finest first (the longest).
+    let mut order = levels.clone();
+    order.reverse();
+    let mut tuned: Vec<(usize, f64, f64)> = crate::par::map(&order, |&l| {
+        let (f, ll) = tune_pem_force(setup, model, data, sigma, start, l);
+        (l, f, ll)
+    })
+    .into_iter()
+    .filter(|(_, _, ll)| ll.is_finite())
+    .collect();
+    tuned.sort_by_key(|t| t.0);
     let best = tuned.iter().map(|t| t.2).fold(f64::NEG_INFINITY, f64::max);
     let (sub, force_std, _) = tuned
         .iter()
