@@ -655,6 +655,38 @@ fn progress_line(r: &LiveReport) -> String {
     )
 }
 
+/// The windows of a windowed identification, one line each: samples and every
+/// parameter's value ± standard error (or why the window gave none).
+fn print_windows(s: &jointid::session::SessionReport, id: &jointid::identify::Identification) {
+    let keys: Vec<String> = id
+        .final_parameters()
+        .map(|ps| ps.iter().map(|p| p.basis.clone()).collect())
+        .unwrap_or_default();
+    println!(
+        "  {} window(s) of {} samples every {} ({} abandoned at a gap), combined by inverse variance:",
+        s.windows.len(),
+        s.window_samples,
+        s.window_every,
+        s.windows_abandoned
+    );
+    for w in &s.windows {
+        let body = match &w.failure {
+            Some(f) => format!("failed: {f}"),
+            None => w
+                .parameters
+                .iter()
+                .zip(&keys)
+                .map(|((v, se), k)| format!("{k} {v:.5e} ± {se:.2e}"))
+                .collect::<Vec<_>>()
+                .join(", "),
+        };
+        println!(
+            "  window {:>10}–{:<10} {body}",
+            w.first_sample, w.last_sample
+        );
+    }
+}
+
 fn print_table(o: &ReplayOutcome) {
     let id = &o.identification;
     for w in &o.input_warnings {
@@ -666,6 +698,9 @@ fn print_table(o: &ReplayOutcome) {
         o.samples,
         id.estimator
     );
+    if let Some(s) = &id.session {
+        print_windows(s, id);
+    }
     if let Some(ml) = &id.maximum_likelihood {
         let worst = ml.whiteness.iter().copied().fold(0.0, f64::max);
         println!(

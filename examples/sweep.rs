@@ -95,6 +95,12 @@ fn main() -> anyhow::Result<()> {
                 );
                 time += t.elapsed().as_secs_f64();
                 match r {
+                    // A failed identification (what `jointid replay` exits 1 on) counts as a
+                    // failure even when it shows the passes' parameters.
+                    Ok(id) if id.failure.is_some() => {
+                        failed += 1;
+                        fails.push(format!("seed {seed}: {}", id.failure.unwrap_or_default()));
+                    }
                     Ok(id) => match id.final_parameters() {
                         Some(ps) => {
                             answered += 1;

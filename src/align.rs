@@ -55,6 +55,7 @@ pub struct Aligner {
     n_response: usize,
     dt_ns: f64,
     last: Option<(u64, u64)>,
+    gaps_allowed: bool,
 }
 
 impl Aligner {
@@ -64,7 +65,17 @@ impl Aligner {
             n_response,
             dt_ns: dt_s * 1e9,
             last: None,
+            gaps_allowed: false,
         }
+    }
+
+    /// An aligner that accepts a gap in the sample indices (frames lost, a restarted
+    /// acquisition recorded after a one-sample gap): a windowed identification
+    /// (`crate::session`) restarts its window after it. The interval check is skipped
+    /// across the gap; every other check stays.
+    pub fn allowing_gaps(mut self) -> Self {
+        self.gaps_allowed = true;
+        self
     }
 
     fn check_frame(
@@ -118,7 +129,11 @@ impl Aligner {
                 });
             }
             if s != ps + 1 {
-                return Err(AlignError::Gap { prev: ps, got: s });
+                if !self.gaps_allowed {
+                    return Err(AlignError::Gap { prev: ps, got: s });
+                }
+                self.last = Some((s, t));
+                return Ok(());
             }
             if t < pt {
                 return Err(AlignError::NonMonotonicTime {

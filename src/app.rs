@@ -269,6 +269,7 @@ impl ReplayOutcome {
             "output": self.output,
             "plots": self.plots,
             "track": id.track,
+            "session": id.session,
             "pass_reports": id.passes,
         })
     }

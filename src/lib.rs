@@ -25,6 +25,7 @@
 //! - [`simulate`]: synthetic tests with a known truth.
 //! - [`track`]: parameters as they change during a test (forgetting, periodic solves).
 //! - [`par`]: order-preserving parallel map over independent simulations.
+//! - [`session`]: whole-session identification in windows (bounded memory), combined.
 //! - [`align`]: joins excitation and response frames, checks gaps and values.
 //! - [`io`]: MCAP recordings (the data contract is in the module docs and docs/CONTRACTS.md).
 //! - [`pipeline`]: source → aligner → stepper → refitter → sinks on threads (replay and live).
@@ -40,6 +41,7 @@ pub mod model;
 pub mod par;
 pub mod pipeline;
 pub mod report;
+pub mod session;
 pub mod setup;
 pub mod simulate;
 pub mod sparse;

@@ -426,6 +426,15 @@ pub struct EstimatorSpec {
     /// model.
     #[serde(default)]
     pub reduce_modes: Option<usize>,
+    /// Identify the record in windows of this many contiguous samples, combined (see
+    /// `session`): memory and time bounded however long the record. Absent (default): the
+    /// whole record at once.
+    #[serde(default)]
+    pub window_samples: Option<usize>,
+    /// Samples from one window's start to the next one's (default: `window_samples`,
+    /// back-to-back windows; raised to it if below).
+    #[serde(default)]
+    pub window_every: Option<usize>,
 }
 
 fn default_forgetting() -> f64 {
@@ -485,6 +494,8 @@ impl Default for EstimatorSpec {
             output_error: true,
             crlb: true,
             reduce_modes: None,
+            window_samples: None,
+            window_every: None,
         }
     }
 }
@@ -721,6 +732,55 @@ impl Setup {
             }
         }
         Setup::from_toml(&text, &format!("{} at dt_s = {dt_s:e}", self.origin))
+    }
+
+    /// The windows the record is identified in (`[estimator] window_samples`,
+    /// `window_every`), if any.
+    pub fn window_spec(&self) -> Option<crate::session::WindowSpec> {
+        let w = self.estimator.window_samples?;
+        Some(crate::session::WindowSpec::new(
+            w,
+            self.estimator.window_every.unwrap_or(w),
+        ))
+    }
+
+    /// The setup with `[estimator] window_samples` and `window_every` set to `spec`
+    /// (re-read and checked; every other line kept), so that a recording whose attached
+    /// setup carries them replays in the same windows.
+    pub fn with_windows(&self, spec: crate::session::WindowSpec) -> Result<Setup, SetupError> {
+        let keys = [
+            format!("window_samples = {}", spec.samples),
+            format!("window_every = {}", spec.every),
+        ];
+        let mut text = String::new();
+        let mut in_estimator = false;
+        let mut placed = false;
+        for l in self.toml_text.lines() {
+            let t = l.trim_start();
+            if t.starts_with('[') {
+                in_estimator = t.starts_with("[estimator]");
+            }
+            if in_estimator && (t.starts_with("window_samples") || t.starts_with("window_every")) {
+                continue;
+            }
+            text.push_str(l);
+            text.push('\n');
+            if in_estimator && !placed && t.starts_with("[estimator]") {
+                for k in &keys {
+                    text.push_str(k);
+                    text.push('\n');
+                }
+                placed = true;
+            }
+        }
+        if !placed {
+            text.push_str("\n[estimator]\n");
+            for k in &keys {
+                text.push_str(k);
+                text.push('\n');
+            }
+        }
+        Setup::from_toml(&text, &self.origin)
     }
 
     pub fn from_file(path: &Path) -> Result<Self, SetupError> {
@@ -1176,6 +1236,23 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
             format!("must be > 0, got {q}"),
         ));
     }
+    if let Some(w) = est.window_samples
+        && w < crate::session::MIN_WINDOW_SAMPLES
+    {
+        return Err(bad(
+            "estimator.window_samples".into(),
+            format!(
+                "must be at least {} (the identification's stiffness scan alone reads 200), got {w}",
+                crate::session::MIN_WINDOW_SAMPLES
+            ),
+        ));
+    }
+    if est.window_every.is_some() && est.window_samples.is_none() {
+        return Err(bad(
+            "estimator.window_every".into(),
+            "needs `window_samples` (the window it is the stride of)".into(),
+        ));
+    }
     if !(est.forgetting > 0.0 && est.forgetting <= 1.0) {
         return Err(bad(
             "estimator.forgetting".into(),
@@ -1256,6 +1333,32 @@ dt_s = 0.01
         assert_eq!(s.estimator.kind, None);
         // `u, v` is linear in the state: the default is maximum likelihood.
         assert_eq!(s.estimator.kind_for(&s.connections), EstimatorKind::Ml);
+    }
+
+    /// The window keys are written into the text (with or without an `[estimator]`
+    /// section, replacing earlier ones) and read back; too small a window is an error naming
+    /// the key, and a stride without a window too.
+    #[test]
+    fn windows_are_written_into_the_setup_text() {
+        use crate::session::WindowSpec;
+        let s = Setup::from_toml(TINY, "tiny").unwrap();
+        assert_eq!(s.window_spec(), None);
+        let w = s.with_windows(WindowSpec::new(5000, 512_000)).unwrap();
+        assert_eq!(w.window_spec(), Some(WindowSpec::new(5000, 512_000)));
+        let again = w.with_windows(WindowSpec::new(800, 100)).unwrap();
+        assert_eq!(again.window_spec(), Some(WindowSpec::new(800, 800)));
+        assert_eq!(again.toml_text.matches("window_samples").count(), 1);
+        let with_section = format!("{TINY}[estimator]\npasses = 3\n");
+        let s2 = Setup::from_toml(&with_section, "tiny").unwrap();
+        let w2 = s2.with_windows(WindowSpec::new(1000, 2000)).unwrap();
+        assert_eq!(w2.estimator.passes, 3);
+        assert_eq!(w2.window_spec(), Some(WindowSpec::new(1000, 2000)));
+        let small = format!("{TINY}[estimator]\nwindow_samples = 10\n");
+        let e = Setup::from_toml(&small, "tiny").unwrap_err().to_string();
+        assert!(e.contains("estimator.window_samples"), "{e}");
+        let stride = format!("{TINY}[estimator]\nwindow_every = 1000\n");
+        let e = Setup::from_toml(&stride, "tiny").unwrap_err().to_string();
+        assert!(e.contains("estimator.window_every"), "{e}");
     }
 
     #[test]

@@ -154,12 +154,7 @@ struct SignTerm {
 /// The true system: component model + true connection law, stepped implicitly.
 pub struct TruthSystem {
     model: Model,
-    /// `M_eff⁻¹ K`, `M_eff⁻¹ C` (`None` when `C = 0`) and `M_eff⁻¹ Lp`: the free
-    /// acceleration `a₀ = M_eff⁻¹ (Lp p − C ṽ − K ũ)` in two matrix–vector products (one
-    /// for an undamped model) instead of three.
-    meff_inv_k: DMatrix<f64>,
-    meff_inv_c: Option<DMatrix<f64>>,
-    meff_inv_lp: DMatrix<f64>,
+    meff_inv: DMatrix<f64>,
     Y: DMatrix<f64>,
     G: DMatrix<f64>,
     blocks: Vec<(Vec<Basis>, Vec<f64>, Option<SignTerm>)>,
@@ -178,12 +173,15 @@ pub struct TruthSystem {
 struct Work {
     ut: DVector<f64>,
     vt: DVector<f64>,
+    rhs: DVector<f64>,
+    cv: DVector<f64>,
     a0: DVector<f64>,
     tmp: DVector<f64>,
     d0: DVector<f64>,
     v0: DVector<f64>,
     da0: DVector<f64>,
     f: DVector<f64>,
+    gf: DVector<f64>,
     d: DVector<f64>,
     dv: DVector<f64>,
     da: DVector<f64>,
@@ -192,17 +190,31 @@ struct Work {
 }
 
 impl Work {
+    /// δ, δ̇, δ̈ at the connections with the forces `f`: `d₀ − (G f) βh²`, `v₀ − (G f) γh`,
+    /// `a₀ − G f` (the product formed first, as the allocating version did).
+    fn deformations(&mut self, G: &DMatrix<f64>, bh2: f64, gh: f64) {
+        self.gf.gemv(1.0, G, &self.f, 0.0);
+        for c in 0..self.gf.len() {
+            self.d[c] = self.d0[c] - self.gf[c] * bh2;
+            self.dv[c] = self.v0[c] - self.gf[c] * gh;
+            self.da[c] = self.da0[c] - self.gf[c];
+        }
+    }
+
     fn new(n: usize, q: usize) -> Self {
         let (vn, vq) = (DVector::zeros(n), DVector::zeros(q));
         Self {
             ut: vn.clone(),
             vt: vn.clone(),
+            rhs: vn.clone(),
+            cv: vn.clone(),
             a0: vn.clone(),
             tmp: vn,
             d0: vq.clone(),
             v0: vq.clone(),
             da0: vq.clone(),
             f: vq.clone(),
+            gf: vq.clone(),
             d: vq.clone(),
             dv: vq.clone(),
             da: vq.clone(),
@@ -281,13 +293,10 @@ impl TruthSystem {
                 }
             })
             .collect();
-        let meff_inv_c = (model.C.amax() > 0.0).then(|| &meff_inv * &model.C);
         Ok(Self {
             work: Work::new(model.n(), q),
             model: model.clone(),
-            meff_inv_k: &meff_inv * &model.K,
-            meff_inv_c,
-            meff_inv_lp: &meff_inv * &model.Lp,
+            meff_inv,
             Y,
             G,
             blocks,
@@ -376,12 +385,7 @@ impl TruthSystem {
                 // Size of the terms that are summed: round-off in the residual is relative
                 // to it, not to the (possibly much smaller) net force.
                 let mut mag = 1.0 + w.f.amax();
-                w.d.copy_from(&w.d0);
-                w.d.gemv(-bh2, &self.G, &w.f, 1.0);
-                w.dv.copy_from(&w.v0);
-                w.dv.gemv(-gh, &self.G, &w.f, 1.0);
-                w.da.copy_from(&w.da0);
-                w.da.gemv(-1.0, &self.G, &w.f, 1.0);
+                w.deformations(&self.G, bh2, gh);
                 for c in 0..q {
                     let (dc, dvc, dac) = (self.work.d[c], self.work.dv[c], self.work.da[c]);
                     match self.status[c] {
@@ -453,12 +457,7 @@ impl TruthSystem {
             }
             // Check the statuses.
             let w = &mut self.work;
-            w.d.copy_from(&w.d0);
-            w.d.gemv(-bh2, &self.G, &w.f, 1.0);
-            w.dv.copy_from(&w.v0);
-            w.dv.gemv(-gh, &self.G, &w.f, 1.0);
-            w.da.copy_from(&w.da0);
-            w.da.gemv(-1.0, &self.G, &w.f, 1.0);
+            w.deformations(&self.G, bh2, gh);
             let mut changed = false;
             let before = self.status.clone();
             for c in 0..q {
@@ -518,12 +517,16 @@ impl TruthSystem {
         w.ut.axpy((0.5 - b) * h * h, &s.a, 1.0);
         w.vt.copy_from(&s.v);
         w.vt.axpy((1.0 - g) * h, &s.a, 1.0);
-        // Acceleration with no connection force: M_eff a₀ = Lp p − C ṽ − K ũ.
-        w.a0.gemv(1.0, &self.meff_inv_lp, p, 0.0);
-        w.a0.gemv(-1.0, &self.meff_inv_k, &w.ut, 1.0);
-        if let Some(ac) = &self.meff_inv_c {
-            w.a0.gemv(-1.0, ac, &w.vt, 1.0);
-        }
+        // Acceleration with no connection force: M_eff a₀ = Lp p − C ṽ − K ũ. Each product
+        // is formed on its own and then subtracted, in the order the allocating version
+        // used, so the results are the same to the last bit (the noise-free exactness tests
+        // of chaotic friction laws see a last-bit change).
+        w.rhs.gemv(1.0, &m.Lp, p, 0.0);
+        w.cv.gemv(1.0, &m.C, &w.vt, 0.0);
+        w.rhs -= &w.cv;
+        w.cv.gemv(1.0, &m.K, &w.ut, 0.0);
+        w.rhs -= &w.cv;
+        w.a0.gemv(1.0, &self.meff_inv, &w.rhs, 0.0);
         // Free connection deformation, rate and acceleration.
         w.tmp.copy_from(&w.ut);
         w.tmp.axpy(b * h * h, &w.a0, 1.0);
@@ -677,7 +680,8 @@ fn response_implicit(
 /// driven by the recorded excitation from rest, its state `x = (u; u̇; ü)` corrected after
 /// every sample by a fixed observer gain: `x ← x + K (y_i − ŷ_{i|i−1})` (`gain` is `3n × m`,
 /// rows in `(u; u̇; ü)` order, columns the station channels). With `K = 0` this is
-/// [`response_to_excitation`] (implicit path).
+/// [`response_to_excitation`] (implicit path). `initial`: offsets `(u; u̇; ü)` from rest of
+/// the state the record starts from (`None`: at rest).
 ///
 /// Why: the prediction-error predictor of [`crate::estimate::prediction_error`]. A joint
 /// that is stuck stays stuck through a correction: the correction's component along a stuck
@@ -694,6 +698,7 @@ pub fn predictions_with_observer(
     dt_s: f64,
     substeps: usize,
     gain: &DMatrix<f64>,
+    initial: Option<&[f64]>,
 ) -> Result<Vec<Vec<f64>>, SimulateError> {
     let n = model.n();
     let m = model.stations.len();
@@ -715,6 +720,13 @@ pub fn predictions_with_observer(
     let mut sys = TruthSystem::with_params(setup, model, h, params)?;
     let ne = model.Lp.ncols();
     let mut s = rest_state(model, &sys, &excitation[0])?;
+    if let Some(x) = initial.filter(|x| x.len() == 3 * n) {
+        for k in 0..n {
+            s.u[k] += x[k];
+            s.v[k] += x[n + k];
+            s.a[k] += x[2 * n + k];
+        }
+    }
     let record = |s: &State| station_outputs(model, s);
     // Unit connection directions, for removing a correction along a stuck joint.
     let dirs: Vec<DVector<f64>> = (0..model.Lc.ncols())

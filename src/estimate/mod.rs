@@ -121,6 +121,25 @@ pub trait ResidualEstimator: Send {
     /// After the last sample: emit the estimates still held back, one per call.
     fn drain(&mut self, out: &mut StepOutput) -> bool;
     fn diagnostics(&self) -> &EstimatorDiagnostics;
+    /// Start the next passes from this state instead of rest: `(u; u̇; ü)` offsets, `3n`
+    /// long (a record that starts in motion). Estimators that cannot (the 1989 one) ignore
+    /// it; `identify` refuses such records for them.
+    fn set_initial_state(&mut self, _offset: &[f64]) {}
+    /// After a pass: the least-squares correction of the initial state `(u; u̇; ü)` that
+    /// the pass's innovations call for (see `kalman::KalmanEstimator::initial_state_fit`).
+    fn initial_state_fit(&self) -> Option<InitialStateFit> {
+        None
+    }
+}
+
+/// The initial-state correction a pass's innovations call for: `correction` (`3n`, to add
+/// to the state the pass started from), the innovation cost it removes and the rank of the
+/// initial state's information.
+#[derive(Debug, Clone)]
+pub struct InitialStateFit {
+    pub correction: Vec<f64>,
+    pub cost_reduction: f64,
+    pub rank: usize,
 }
 
 /// The connection law `f = Σ pⱼ vⱼ(δ, δ̇, δ̈)` with the current parameter estimate, split

@@ -47,6 +47,48 @@ pub struct Predictor {
     /// Spectral radius of the linear part's closed loop `(I − K H) Φ` (< 1: the observer
     /// forgets an error; its memory is about `1/(1 − ρ)` samples).
     pub spectral_radius: f64,
+    /// The state `(u; u̇; ü)` the predictions start from, as offsets from rest (a record
+    /// that starts in motion; `IdentifyOptions::initial_state`). `None`: at rest.
+    pub initial: Option<Vec<f64>>,
+    /// `Ψᵀ` with `Ψ = Φ (I − K H)` (the prediction's error recursion), `Hᵀ S⁻¹` and `H`:
+    /// the initial-state fit's matrices.
+    psi_t: DMatrix<f64>,
+    ht_sinv: DMatrix<f64>,
+    h: DMatrix<f64>,
+}
+
+impl Predictor {
+    /// Refit the initial state from whitened innovations `r` (as [`innovations`] returns
+    /// them) of a run that started from `self.initial`: the least-squares correction of
+    /// the predicted state at the first sample (the innovations are affine in it for the
+    /// linear part, `e_k = e⁰_k − H Ψᵏ δ`, `Ψ = Φ (I − K H)`; see
+    /// `kalman::initial_state_information`), added to `self.initial`. Returns the
+    /// whitened cost it removes.
+    pub fn refit_initial_state(&mut self, r: &[f64]) -> Option<f64> {
+        let m = self.whiten.nrows();
+        // Back from whitened to raw innovations: e = L r (S = L Lᵀ, whiten = L⁻¹).
+        let l = self.whiten.clone().try_inverse()?;
+        let mut raw = Vec::with_capacity(r.len());
+        for w in r.chunks(m) {
+            raw.extend((&l * DVector::from_column_slice(w)).iter());
+        }
+        let (lam, sum) = crate::estimate::kalman::initial_state_information(
+            &self.psi_t,
+            &self.ht_sinv,
+            &self.h,
+            &raw,
+        );
+        let (delta, _) = crate::estimate::kalman::pseudo_solve(&sum, &lam)?;
+        let reduction = lam.dot(&delta);
+        if !(reduction.is_finite() && delta.iter().all(|x| x.is_finite())) {
+            return None;
+        }
+        let x = self.initial.get_or_insert_with(|| vec![0.0; delta.len()]);
+        for (a, d) in x.iter_mut().zip(delta.iter()) {
+            *a += d;
+        }
+        Some(reduction)
+    }
 }
 
 fn flat_basis(setup: &Setup) -> Vec<Basis> {
@@ -121,7 +163,13 @@ pub fn predictor(
     if !gain.iter().all(|x| x.is_finite()) {
         return Err(SimulateError::Singular);
     }
+    let psi_t = (&phi * (DMatrix::identity(3 * n, 3 * n) - &gain * &H)).transpose();
+    let ht_sinv = H.transpose() * &sinv;
     Ok(Predictor {
+        psi_t,
+        ht_sinv,
+        h: H,
+        initial: None,
         gain,
         whiten: linv,
         force_std,
@@ -150,6 +198,7 @@ pub fn innovations(
         setup.dt_s,
         substeps,
         &pred.gain,
+        pred.initial.as_deref(),
     )?;
     let m = pred.whiten.nrows();
     let mut r = Vec::with_capacity(y.len() * m);
@@ -384,6 +433,7 @@ pub fn refine(
     substeps: usize,
     force_std: f64,
     max_iter: usize,
+    initial: Option<&[f64]>,
 ) -> Result<PemRefined, SimulateError> {
     let basis = flat_basis(setup);
     let m = sigma.len();
@@ -401,7 +451,18 @@ pub fn refine(
     let mut cost_start = None;
     let mut last: Option<(Jac, Predictor)> = None;
     for round in 0..2 {
-        let pred = predictor(setup, model, &p, sigma, substeps, force_std)?;
+        let mut pred = predictor(setup, model, &p, sigma, substeps, force_std)?;
+        pred.initial = initial.map(<[f64]>::to_vec);
+        // A record in motion: refit the start state with this observer (twice: the
+        // friction's switching makes the innovations only nearly affine in it).
+        if pred.initial.is_some() {
+            for _ in 0..2 {
+                let (r0, _) = innovations(setup, model, &p, &pred, excitation, response, substeps)?;
+                if pred.refit_initial_state(&r0).is_none() {
+                    break;
+                }
+            }
+        }
         let mut J = jacobian(
             setup, model, &basis, &p, &scales, &pred, excitation, response, substeps,
         )?;

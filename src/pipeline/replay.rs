@@ -93,6 +93,9 @@ fn identify_stage(
     truth: Option<&[f64]>,
     path: &Path,
 ) -> Result<StageResult, AppError> {
+    if let Some(spec) = setup.window_spec() {
+        return identify_windows_stage(rx, tx, setup, opts, truth, path, spec);
+    }
     let mut data = TestData::default();
     let mut input_warnings = Vec::new();
     let mut fault: Option<AlignError> = None;
@@ -161,6 +164,118 @@ fn identify_stage(
         },
     );
     let _ = tx.send(Msg::Flush);
+    Ok(StageResult {
+        data,
+        input_warnings,
+        input_error,
+        identification,
+    })
+}
+
+/// The identification stage of a record identified in windows (the setup's `[estimator]
+/// window_samples`, see [`crate::session`]): each window is identified as it completes,
+/// holding one window in memory; a gap restarts the window (the aligner lets gaps through);
+/// the result is the last window's identification carrying the combination of all. A
+/// record shorter than one window is identified whole, as one window.
+fn identify_windows_stage(
+    rx: crossbeam_channel::Receiver<Msg<AlignedItem>>,
+    tx: crossbeam_channel::Sender<Msg<StageOut>>,
+    setup: &Setup,
+    opts: &IdentifyOptions,
+    truth: Option<&[f64]>,
+    path: &Path,
+    spec: crate::session::WindowSpec,
+) -> Result<StageResult, AppError> {
+    use crate::session::{SessionReport, WindowCollector, identify_window, with_combination};
+    let mut collector = WindowCollector::new(spec);
+    let mut report = SessionReport::new(spec);
+    let mut bounds: Vec<Vec<Option<f64>>> = Vec::new();
+    let mut last: Option<(TestData, Result<Identification, IdentifyError>)> = None;
+    let mut input_warnings = Vec::new();
+    let mut input_error: Option<String> = None;
+    let run = |data: TestData,
+               report: &mut SessionReport,
+               bounds: &mut Vec<Vec<Option<f64>>>,
+               last: &mut Option<(TestData, Result<Identification, IdentifyError>)>| {
+        let _ = tx.send(Msg::Data(StageOut::Start {
+            samples: data.len(),
+            passes: opts.passes,
+        }));
+        let (est, id) = identify_window(setup, &data, opts, truth, &mut |r| {
+            let _ = tx.send(Msg::Data(StageOut::Pass(Box::new(r.clone()))));
+        });
+        if est.failure.is_none()
+            && let Ok(i) = &id
+        {
+            bounds.push(
+                i.final_parameters()
+                    .map(|ps| ps.iter().map(|p| p.crlb).collect())
+                    .unwrap_or_default(),
+            );
+        }
+        // The output shows the last window that was identified (a failed window after
+        // good ones does not take their place); a failed one only when none was.
+        let good = est.failure.is_none();
+        report.windows.push(est);
+        if good
+            || last
+                .as_ref()
+                .is_none_or(|(_, l)| l.as_ref().map_or(true, |i| i.failure.is_some()))
+        {
+            *last = Some((data, id));
+        }
+    };
+    loop {
+        match rx.recv() {
+            Ok(Msg::Data(AlignedItem::Sample(a))) => {
+                report.samples_seen += 1;
+                if let Some(w) = collector.push(a.sample, a.t_ns, &a.excitation, &a.response) {
+                    run(w, &mut report, &mut bounds, &mut last);
+                }
+            }
+            Ok(Msg::Data(AlignedItem::Warning(w))) => input_warnings.push(w),
+            Ok(Msg::Data(AlignedItem::Fault(e))) => {
+                // Every fault but a gap (which the aligner lets through) ends the data here.
+                input_error.get_or_insert(format!("{}: {e}", path.display()));
+            }
+            Ok(Msg::Flush) => break,
+            Ok(Msg::Quit { error }) => {
+                if error.is_some() {
+                    input_error = error;
+                }
+                break;
+            }
+            Err(_) => {
+                input_error = Some("the aligner stage ended without an end message".into());
+                break;
+            }
+        }
+    }
+    report.windows_abandoned = collector.abandoned;
+    if report.windows.is_empty() {
+        let partial = collector.take_partial();
+        if partial.len() < 3 {
+            return Err(AppError::TooLittleData {
+                path: path.to_path_buf(),
+                samples: partial.len(),
+                cause: input_error.unwrap_or_else(|| "the recording is empty".into()),
+            });
+        }
+        input_warnings.push(format!(
+            "{}: {} samples, fewer than one window of {}: identified whole",
+            path.display(),
+            partial.len(),
+            spec.samples
+        ));
+        run(partial, &mut report, &mut bounds, &mut last);
+    }
+    let _ = tx.send(Msg::Flush);
+    let Some((data, id)) = last else {
+        return Err(AppError::Pipeline {
+            msg: "windowed identification ended without a window".into(),
+        });
+    };
+    let identification = id.map(|i| with_combination(i, report, &bounds));
     Ok(StageResult {
         data,
         input_warnings,
@@ -254,6 +369,12 @@ pub fn run(
             None
         };
     let aligner = Aligner::new(setup.excitation.len(), setup.sensors.len(), setup.dt_s);
+    // Windows restart after a gap; a whole-record identification stops at it.
+    let aligner = if setup.window_spec().is_some() {
+        aligner.allowing_gaps()
+    } else {
+        aligner
+    };
 
     let (src_tx, src_rx) = bounded(CHANNEL_CAPACITY);
     let (al_tx, al_rx) = bounded(CHANNEL_CAPACITY);
@@ -312,7 +433,10 @@ pub fn run(
     }
     let mut outcome = ReplayOutcome {
         recording: path.clone(),
-        samples: stage.data.len(),
+        samples: identification
+            .session
+            .as_ref()
+            .map_or(stage.data.len(), |s| s.samples_seen),
         identification,
         input_warnings: stage.input_warnings,
         input_error: stage.input_error,
