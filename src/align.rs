@@ -71,8 +71,9 @@ impl Aligner {
 
     /// An aligner that accepts a gap in the sample indices (frames lost, a restarted
     /// acquisition recorded after a one-sample gap): a windowed identification
-    /// (`crate::session`) restarts its window after it. The interval check is skipped
-    /// across the gap; every other check stays.
+    /// (`crate::session`) restarts its window after it. The time checks (interval and
+    /// monotonic time) are skipped across the gap (a restarted acquisition's clock may
+    /// start anywhere); the others stay.
     pub fn allowing_gaps(mut self) -> Self {
         self.gaps_allowed = true;
         self

@@ -303,6 +303,10 @@ pub struct Identification {
     /// refinement and the notes above are the last window's.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub session: Option<crate::session::SessionReport>,
+    /// A record that starts in motion: the estimated initial state `(u; u̇; ü)` as offsets
+    /// from rest (the Kalman passes' last fit), which the predicted response starts from.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub initial_state: Option<Vec<f64>>,
 }
 
 impl Identification {
@@ -838,8 +842,15 @@ fn starts_at_rest(setup: &Setup, data: &TestData, sigma: &[f64]) -> Result<(), I
         if !matches!(sensor.quantity, Quantity::Displacement | Quantity::Velocity) {
             continue;
         }
-        let ratio = value.abs() / s;
-        if ratio > MAX_START_NOISE_RATIO && s > 0.0 {
+        // Noise-free data (std 0) at rest read exactly 0.
+        let ratio = if s > 0.0 {
+            value.abs() / s
+        } else if value != 0.0 {
+            f64::INFINITY
+        } else {
+            0.0
+        };
+        if ratio > MAX_START_NOISE_RATIO {
             return Err(IdentifyError::NotAtRest {
                 sensor: sensor.name.clone(),
                 sample,
@@ -941,6 +952,7 @@ pub fn identify(
         maximum_likelihood: None,
         notes: Vec::new(),
         session: None,
+        initial_state: None,
     };
     result.notes.extend(fallback_note);
     result.notes.extend(motion_note);
@@ -1117,6 +1129,7 @@ pub fn identify(
         }
     }
     // The output-error stage starts from the last finished pass, also after a failed one.
+    result.initial_state = opts.initial_state.clone();
     finish_with_output_error(setup, &model, data, &opts, &sigma, &mut result);
     if result.failure.is_some() {
         return Ok(result);
@@ -1135,6 +1148,16 @@ pub fn identify(
         };
     }
     Ok(result)
+}
+
+/// What replaces an unusable prediction-error refinement: the free-run output error, or
+/// nothing for a record in motion (the free run starts at rest).
+fn fallback_words(opts: &IdentifyOptions) -> &'static str {
+    if opts.initial_state.is_some() {
+        "the free-run output error starts at rest and is not used on a record in motion"
+    } else {
+        "the free-run output error is used"
+    }
 }
 
 /// After the passes: the Cramér–Rao bound of every parameter and, when enabled, the
@@ -1197,8 +1220,9 @@ fn finish_with_output_error(
         match refine_by_prediction_error(setup, model, data, opts, sigma, &values, &scales) {
             Ok((r, raised)) if r.report.cost_end > PEM_MAX_COST => {
                 result.notes.push(format!(
-                    "prediction-error refinement not used: its model explains the outputs only to {:.1}× the noise variance with {raised} model sub-steps (more than {PEM_MAX_COST}); the observer would take the model error as process noise and the friction would be undetermined; the free-run output error is used",
-                    r.report.cost_end
+                    "prediction-error refinement not used: its model explains the outputs only to {:.1}× the noise variance with {raised} model sub-steps (more than {PEM_MAX_COST}); the observer would take the model error as process noise and the friction would be undetermined; {}",
+                    r.report.cost_end,
+                    fallback_words(opts)
                 ));
             }
             Ok((r, _))
@@ -1206,7 +1230,8 @@ fn finish_with_output_error(
                     pem_undetermined(setup, &r, &values, &scales, opts.initial_state.is_some()) =>
             {
                 result.notes.push(format!(
-                    "prediction-error refinement not used: {why}; the free-run output error is used"
+                    "prediction-error refinement not used: {why}; {}",
+                    fallback_words(opts)
                 ));
             }
             Ok((r, raised)) => {
@@ -1265,7 +1290,8 @@ fn finish_with_output_error(
                 return;
             }
             Err(e) => result.notes.push(format!(
-                "prediction-error refinement not run ({e}); the free-run output error is used"
+                "prediction-error refinement not run ({e}); {}",
+                fallback_words(opts)
             )),
         }
     }
@@ -2018,6 +2044,7 @@ fn identify_by_maximum_likelihood(
         maximum_likelihood: Some(fit),
         notes,
         session: None,
+        initial_state: None,
     })
 }
 

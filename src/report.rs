@@ -102,14 +102,29 @@ pub fn predicted_response(
             .output_error
             .as_ref()
             .map_or(setup.substeps, |o| o.substeps.max(1));
-        crate::simulate::response_to_excitation(
-            setup,
-            model,
-            &params,
-            &data.excitation,
-            setup.dt_s,
-            substeps,
-        )
+        match &identification.initial_state {
+            // A record in motion: the free run from the estimated initial state (the
+            // observer form with a zero gain).
+            Some(x0) => crate::simulate::predictions_with_observer(
+                setup,
+                model,
+                &params,
+                &data.excitation,
+                &data.response,
+                setup.dt_s,
+                substeps,
+                &nalgebra::DMatrix::zeros(3 * model.n(), m),
+                Some(x0),
+            ),
+            None => crate::simulate::response_to_excitation(
+                setup,
+                model,
+                &params,
+                &data.excitation,
+                setup.dt_s,
+                substeps,
+            ),
+        }
         .map_err(|e| e.to_string())?
     };
     Ok((0..m)

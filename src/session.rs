@@ -273,6 +273,11 @@ pub fn with_combination(
             let (Some(&v), Some(&se)) = (c.values.get(j), c.std_errors.get(j)) else {
                 continue;
             };
+            // No window gave this parameter: the last window's value stays, with its
+            // failure noted by the window list.
+            if !(v.is_finite() && se.is_finite()) {
+                continue;
+            }
             p.value = v;
             p.std_error = se;
             p.ci95 = [v - 1.96 * se, v + 1.96 * se];

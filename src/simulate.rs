@@ -527,7 +527,9 @@ impl TruthSystem {
         w.cv.gemv(1.0, &m.K, &w.ut, 0.0);
         w.rhs -= &w.cv;
         w.a0.gemv(1.0, &self.meff_inv, &w.rhs, 0.0);
-        // Free connection deformation, rate and acceleration.
+        // Free connection deformation, rate and acceleration. (`gemv_tr` sums by dot
+        // products; an `Lc` column has one or two non-zeros, so the order cannot change a
+        // bit.)
         w.tmp.copy_from(&w.ut);
         w.tmp.axpy(b * h * h, &w.a0, 1.0);
         w.d0.gemv_tr(1.0, &m.Lc, &w.tmp, 0.0);
@@ -537,8 +539,11 @@ impl TruthSystem {
         w.da0.gemv_tr(1.0, &m.Lc, &w.a0, 0.0);
         self.solve_forces()?;
         let w = &mut self.work;
+        // a = a₀ − (Y f): the product first, as the allocating version did (with two or more
+        // connections the sum order matters to the last bit).
+        w.tmp.gemv(1.0, &self.Y, &w.f, 0.0);
         s.a.copy_from(&w.a0);
-        s.a.gemv(-1.0, &self.Y, &w.f, 1.0);
+        s.a -= &w.tmp;
         s.u.copy_from(&w.ut);
         s.u.axpy(b * h * h, &s.a, 1.0);
         s.v.copy_from(&w.vt);

@@ -58,6 +58,43 @@ pub struct Predictor {
 }
 
 impl Predictor {
+    /// Project the whitened innovation sensitivities `cols` (one column per parameter,
+    /// `m` per sample) onto the complement of the initial state's (`W H Ψᵏ`): the
+    /// Jacobian of the likelihood concentrated over the initial state, so the standard
+    /// errors include its uncertainty (a parameter that trades off against the start's
+    /// transient gets the wider error it deserves).
+    pub fn project_out_initial_state(&self, cols: &mut [Vec<f64>]) {
+        let m = self.whiten.nrows();
+        let Some(l) = self.whiten.clone().try_inverse() else {
+            return;
+        };
+        let psi = self.psi_t.transpose();
+        let wh = &self.whiten * &self.h;
+        for col in cols.iter_mut() {
+            let mut raw = Vec::with_capacity(col.len());
+            for w in col.chunks(m) {
+                raw.extend((&l * DVector::from_column_slice(w)).iter());
+            }
+            let (lam, sum) = crate::estimate::kalman::initial_state_information(
+                &self.psi_t,
+                &self.ht_sinv,
+                &self.h,
+                &raw,
+            );
+            let Some((a, _)) = crate::estimate::kalman::pseudo_solve(&sum, &lam) else {
+                continue;
+            };
+            let mut v = a;
+            for w in col.chunks_mut(m) {
+                let g = &wh * &v;
+                for (x, y) in w.iter_mut().zip(g.iter()) {
+                    *x -= y;
+                }
+                v = &psi * v;
+            }
+        }
+    }
+
     /// Refit the initial state from whitened innovations `r` (as [`innovations`] returns
     /// them) of a run that started from `self.initial`: the least-squares correction of
     /// the predicted state at the first sample (the innovations are affine in it for the
@@ -573,6 +610,9 @@ pub fn refine(
         ) {
             J = J2;
         }
+    }
+    if pred.initial.is_some() {
+        pred.project_out_initial_state(&mut J.cols);
     }
     let (se, naive, lag) = sandwich(&J, m).ok_or(SimulateError::Singular)?;
     Ok(PemRefined {

@@ -83,7 +83,11 @@ fn tune_pem_force(
         // A record in motion: the likelihood concentrated over the start state (the cost
         // its least-squares refit removes).
         let c = if pred.initial.is_some() {
-            c - pred.refit_initial_state(&r).unwrap_or(0.0)
+            // Not concentrated (the fit failed): not comparable with the others.
+            match pred.refit_initial_state(&r) {
+                Some(reduction) => c - reduction,
+                None => return f64::NEG_INFINITY,
+            }
         } else {
             c
         };

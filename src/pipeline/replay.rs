@@ -176,7 +176,9 @@ fn identify_stage(
 /// window_samples`, see [`crate::session`]): each window is identified as it completes,
 /// holding one window in memory; a gap restarts the window (the aligner lets gaps through);
 /// the result is the last window's identification carrying the combination of all. A
-/// record shorter than one window is identified whole, as one window.
+/// record shorter than one window is identified whole, as one window. The windows' passes
+/// are reported as they finish; per-sample outputs are not kept (a results file of a
+/// windowed replay has the parameters, not the residual-force history).
 fn identify_windows_stage(
     rx: crossbeam_channel::Receiver<Msg<AlignedItem>>,
     tx: crossbeam_channel::Sender<Msg<StageOut>>,
@@ -193,6 +195,7 @@ fn identify_windows_stage(
     let mut last: Option<(TestData, Result<Identification, IdentifyError>)> = None;
     let mut input_warnings = Vec::new();
     let mut input_error: Option<String> = None;
+    let mut fault: Option<AlignError> = None;
     let run = |data: TestData,
                report: &mut SessionReport,
                bounds: &mut Vec<Vec<Option<f64>>>,
@@ -236,7 +239,7 @@ fn identify_windows_stage(
             Ok(Msg::Data(AlignedItem::Warning(w))) => input_warnings.push(w),
             Ok(Msg::Data(AlignedItem::Fault(e))) => {
                 // Every fault but a gap (which the aligner lets through) ends the data here.
-                input_error.get_or_insert(format!("{}: {e}", path.display()));
+                fault.get_or_insert(e);
             }
             Ok(Msg::Flush) => break,
             Ok(Msg::Quit { error }) => {
@@ -249,6 +252,15 @@ fn identify_windows_stage(
                 input_error = Some("the aligner stage ended without an end message".into());
                 break;
             }
+        }
+    }
+    // As the whole-record stage: a ragged end (one topic one frame longer) after a
+    // truncation or a read error is expected, any other fault is the input error.
+    if let Some(e) = fault {
+        let cut = input_error.is_some() || !input_warnings.is_empty();
+        let ragged = matches!(e, AlignError::Unpaired { .. }) && cut;
+        if !ragged && input_error.is_none() {
+            input_error = Some(format!("{}: {e}", path.display()));
         }
     }
     report.windows_abandoned = collector.abandoned;
