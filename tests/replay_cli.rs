@@ -426,21 +426,7 @@ fn simulate_and_replay_within(
     extra: &[&str],
     k: f64,
 ) -> serde_json::Value {
-    let rec = dir.join(format!("seed-{seed}.mcap"));
-    let mut args = vec![
-        "simulate",
-        setup.to_str().unwrap(),
-        "--out",
-        rec.to_str().unwrap(),
-        "--scenario",
-        "random",
-        "--noise",
-        "additive:0.01",
-        "--seed",
-        seed,
-    ];
-    args.extend_from_slice(extra);
-    ok(&args);
+    let rec = simulate_with(dir, setup, seed, extra);
     let v = replay_json(&[rec.to_str().unwrap()]);
     for p in v["parameters"].as_array().unwrap() {
         let (value, truth, se) = (
@@ -524,6 +510,27 @@ fn coulomb_friction_on_eight_substep_data() {
     }
 }
 
+/// `jointid simulate SETUP` (random input, 1 % noise, `seed`, `extra` options) into
+/// `dir/seed-SEED.mcap`.
+fn simulate_with(dir: &Path, setup: &Path, seed: &str, extra: &[&str]) -> std::path::PathBuf {
+    let rec = dir.join(format!("seed-{seed}.mcap"));
+    let mut args = vec![
+        "simulate",
+        setup.to_str().unwrap(),
+        "--out",
+        rec.to_str().unwrap(),
+        "--scenario",
+        "random",
+        "--noise",
+        "additive:0.01",
+        "--seed",
+        seed,
+    ];
+    args.extend_from_slice(extra);
+    ok(&args);
+    rec
+}
+
 /// A setup file in `dir` from a shipped one with the law replaced, the estimator `kind` and
 /// windows of `window` samples every `every` (`[estimator] window_samples`, `window_every`).
 fn windowed_setup(
@@ -547,24 +554,7 @@ fn windowed_setup(
 }
 
 fn simulate_to(dir: &Path, setup: &Path, steps: &str, seed: &str) -> std::path::PathBuf {
-    let rec = dir.join(format!("rec-{seed}.mcap"));
-    ok(&[
-        "simulate",
-        setup.to_str().unwrap(),
-        "--out",
-        rec.to_str().unwrap(),
-        "--scenario",
-        "random",
-        "--steps",
-        steps,
-        "--substeps",
-        "8",
-        "--noise",
-        "additive:0.01",
-        "--seed",
-        seed,
-    ]);
-    rec
+    simulate_with(dir, setup, seed, &["--steps", steps, "--substeps", "8"])
 }
 
 /// A record identified in windows (maximum likelihood, a spring law): three windows of

@@ -65,23 +65,10 @@ impl Predictor {
     /// transient gets the wider error it deserves).
     pub fn project_out_initial_state(&self, cols: &mut [Vec<f64>]) {
         let m = self.whiten.nrows();
-        let Some(l) = self.whiten.clone().try_inverse() else {
-            return;
-        };
         let psi = self.psi_t.transpose();
         let wh = &self.whiten * &self.h;
         for col in cols.iter_mut() {
-            let mut raw = Vec::with_capacity(col.len());
-            for w in col.chunks(m) {
-                raw.extend((&l * DVector::from_column_slice(w)).iter());
-            }
-            let (lam, sum) = crate::estimate::kalman::initial_state_information(
-                &self.psi_t,
-                &self.ht_sinv,
-                &self.h,
-                &raw,
-            );
-            let Some((a, _)) = crate::estimate::kalman::pseudo_solve(&sum, &lam) else {
+            let Some((a, _)) = self.initial_state_solve(col) else {
                 continue;
             };
             let mut v = a;
@@ -95,18 +82,16 @@ impl Predictor {
         }
     }
 
-    /// Refit the initial state from whitened innovations `r` (as [`innovations`] returns
-    /// them) of a run that started from `self.initial`: the least-squares correction of
-    /// the predicted state at the first sample (the innovations are affine in it for the
-    /// linear part, `e_k = e⁰_k − H Ψᵏ δ`, `Ψ = Φ (I − K H)`; see
-    /// `kalman::initial_state_information`), added to `self.initial`. Returns the
-    /// whitened cost it removes.
-    pub fn refit_initial_state(&mut self, r: &[f64]) -> Option<f64> {
+    /// The least-squares initial-state error `δ` of whitened innovations (or of any
+    /// whitened column of the same shape) and `λ`, the right-hand side of its normal
+    /// equations (`λᵀδ` is the cost it removes); see
+    /// `kalman::initial_state_information`.
+    fn initial_state_solve(&self, whitened: &[f64]) -> Option<(DVector<f64>, DVector<f64>)> {
         let m = self.whiten.nrows();
         // Back from whitened to raw innovations: e = L r (S = L Lᵀ, whiten = L⁻¹).
         let l = self.whiten.clone().try_inverse()?;
-        let mut raw = Vec::with_capacity(r.len());
-        for w in r.chunks(m) {
+        let mut raw = Vec::with_capacity(whitened.len());
+        for w in whitened.chunks(m) {
             raw.extend((&l * DVector::from_column_slice(w)).iter());
         }
         let (lam, sum) = crate::estimate::kalman::initial_state_information(
@@ -116,6 +101,17 @@ impl Predictor {
             &raw,
         );
         let (delta, _) = crate::estimate::kalman::pseudo_solve(&sum, &lam)?;
+        Some((delta, lam))
+    }
+
+    /// Refit the initial state from whitened innovations `r` (as [`innovations`] returns
+    /// them) of a run that started from `self.initial`: the least-squares correction of
+    /// the predicted state at the first sample (the innovations are affine in it for the
+    /// linear part, `e_k = e⁰_k − H Ψᵏ δ`, `Ψ = Φ (I − K H)`; see
+    /// `kalman::initial_state_information`), added to `self.initial`. Returns the
+    /// whitened cost it removes.
+    pub fn refit_initial_state(&mut self, r: &[f64]) -> Option<f64> {
+        let (delta, lam) = self.initial_state_solve(r)?;
         let reduction = lam.dot(&delta);
         if !(reduction.is_finite() && delta.iter().all(|x| x.is_finite())) {
             return None;
