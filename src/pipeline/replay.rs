@@ -81,6 +81,22 @@ fn mcap_source(
     let _ = tx.send(end);
 }
 
+/// The input policy for an aligner fault: a ragged end (one topic one frame longer) after
+/// a truncation or a read error is expected; any other fault is the input error (unless
+/// there already is one).
+fn fault_ends_input(
+    e: AlignError,
+    input_error: &mut Option<String>,
+    input_warnings: &[String],
+    path: &Path,
+) {
+    let cut = input_error.is_some() || !input_warnings.is_empty();
+    let ragged = matches!(e, AlignError::Unpaired { .. }) && cut;
+    if !ragged && input_error.is_none() {
+        *input_error = Some(format!("{}: {e}", path.display()));
+    }
+}
+
 /// The identification stage: buffer, then identify (see the module docs). The input
 /// policy is the one replay always had: an input error ends the data there, the samples
 /// before it are identified, and a ragged end (one topic one frame longer) after a
@@ -134,11 +150,7 @@ fn identify_stage(
             data.len()
         ));
     } else if let Some(e) = fault {
-        let cut = input_error.is_some() || !input_warnings.is_empty();
-        let ragged = matches!(e, AlignError::Unpaired { .. }) && cut;
-        if !ragged && input_error.is_none() {
-            input_error = Some(format!("{}: {e}", path.display()));
-        }
+        fault_ends_input(e, &mut input_error, &input_warnings, path);
     }
     if data.len() < 3 {
         return Err(AppError::TooLittleData {
@@ -254,14 +266,8 @@ fn identify_windows_stage(
             }
         }
     }
-    // As the whole-record stage: a ragged end (one topic one frame longer) after a
-    // truncation or a read error is expected, any other fault is the input error.
     if let Some(e) = fault {
-        let cut = input_error.is_some() || !input_warnings.is_empty();
-        let ragged = matches!(e, AlignError::Unpaired { .. }) && cut;
-        if !ragged && input_error.is_none() {
-            input_error = Some(format!("{}: {e}", path.display()));
-        }
+        fault_ends_input(e, &mut input_error, &input_warnings, path);
     }
     report.windows_abandoned = collector.abandoned;
     if report.windows.is_empty() {
