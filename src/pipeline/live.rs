@@ -51,9 +51,11 @@
 //! leave the batch to `jointid replay` on the recording), the refitter runs the full identification
 //! ([`crate::identify::identify`], the same code as `jointid replay`) over the first
 //! segment's buffered samples (at most `--buffer-samples`), so the final parameters equal
-//! those of `jointid replay session.mcap` on the recorded session (replay also stops at
-//! the first gap). It costs about 2.5 ms per buffered sample (10 passes with Kalman
-//! tuning), hence the default of 20,000. `--buffer-samples 0` turns the buffer and the
+//! those of `jointid replay session.mcap` on the recorded session when the session is no
+//! longer than the buffer (replay also stops at the first gap; a longer recording is
+//! identified whole by replay, or as live did with a one-window setup, docs/LIVE.md). It
+//! costs about 0.5 ms per buffered sample (10 passes with Kalman tuning, the refinement on
+//! two threads), hence the default of 20,000. `--buffer-samples 0` turns the buffer and the
 //! batch refit off (memory then stays flat however long the session runs).
 
 use std::collections::VecDeque;
