@@ -1269,6 +1269,9 @@ fn finish_with_output_error(
                         .collect::<Vec<_>>()
                         .join(", ")
                 ));
+                if r.initial_state.is_some() {
+                    result.initial_state = r.initial_state.clone();
+                }
                 for (j, p) in last.parameters.iter_mut().enumerate() {
                     p.value = r.values[j];
                     p.std_error = r.std_errors[j];

@@ -155,10 +155,21 @@ pub fn write_plots(
     let t0 = data.t_ns.first().copied().unwrap_or(0);
     let time_s: Vec<f64> = data.t_ns.iter().map(|&t| (t - t0) as f64 * 1e-9).collect();
 
-    // Force–deformation loops.
+    // Force–deformation loops (from the last pass's per-sample estimates; a windowed
+    // identification keeps none).
     let finals = identification.final_parameters().unwrap_or(&[]);
     let mut offset = 0;
-    for (c, conn) in setup.connections.iter().enumerate() {
+    if last_pass.is_empty() {
+        summary.notes.push(
+            "force–deformation loops not drawn: no per-sample residual-force estimate was kept (a windowed identification keeps none)".into(),
+        );
+    }
+    for (c, conn) in setup
+        .connections
+        .iter()
+        .enumerate()
+        .filter(|_| !last_pass.is_empty())
+    {
         let k = conn.basis.len();
         let params: Vec<f64> = finals
             .get(offset..offset + k)

@@ -299,6 +299,9 @@ pub struct PemRefined {
     /// Naive `(JᵀJ)^{-1/2}` of the normalised innovations.
     pub naive: Vec<f64>,
     pub report: PredictionErrorReport,
+    /// A record in motion: the initial state `(u; u̇; ü)` (offsets from rest) the last
+    /// round's observer refitted, which the predicted response starts from.
+    pub initial_state: Option<Vec<f64>>,
 }
 
 struct Jac {
@@ -612,6 +615,7 @@ pub fn refine(
     }
     let (se, naive, lag) = sandwich(&J, m).ok_or(SimulateError::Singular)?;
     Ok(PemRefined {
+        initial_state: pred.initial.clone(),
         report: PredictionErrorReport {
             force_std,
             spectral_radius: pred.spectral_radius,

@@ -273,6 +273,7 @@ mod tests {
 
     fn pem(values: Vec<f64>, std_errors: Vec<f64>) -> PemRefined {
         PemRefined {
+            initial_state: None,
             naive: std_errors.clone(),
             values,
             std_errors,
