@@ -779,8 +779,6 @@ impl ParameterAccumulator {
     }
 }
 
-/// Run the identification (Steps I–VI) over recorded data.
-///
 /// The initial state `(u; u̇; ü)` (offsets from rest) of a record that starts in motion:
 /// two filter passes with the setup's initial law and the untuned random walk, each started
 /// from the last one's initial-state fit (`KalmanEstimator::initial_state_fit`; two,
@@ -795,12 +793,7 @@ fn estimate_initial_state(
     data: &TestData,
 ) -> Result<Vec<f64>, IdentifyError> {
     let mut x = vec![0.0; 3 * model.n()];
-    let probe = IdentifyOptions {
-        estimator: EstimatorKind::Kalman,
-        initial_state: Some(x.clone()),
-        ..opts.clone()
-    };
-    let mut est = build_estimator(setup, model, params, &probe, sigma, data.len())?;
+    let mut est = build_estimator(setup, model, params, opts, sigma, data.len())?;
     let mut out = StepOutput::new(setup.connections.len());
     for _ in 0..2 {
         est.set_initial_state(&x);
@@ -813,10 +806,10 @@ fn estimate_initial_state(
                 &mut out,
             )?;
         }
-        let Some(fit) = est.initial_state_fit() else {
+        let Some(correction) = est.initial_state_fit() else {
             break;
         };
-        for (a, d) in x.iter_mut().zip(&fit.correction) {
+        for (a, d) in x.iter_mut().zip(&correction) {
             *a += d;
         }
     }
@@ -863,6 +856,8 @@ fn starts_at_rest(setup: &Setup, data: &TestData, sigma: &[f64]) -> Result<(), I
     Ok(())
 }
 
+/// Run the identification (Steps I–VI) over recorded data.
+///
 /// `on_pass` is told about each finished pass (for progress and per-pass outputs);
 /// `on_sample` receives `(pass, record)` for every sample of every pass.
 pub fn identify(
@@ -991,8 +986,8 @@ pub fn identify(
         let report = match outcome {
             Ok((r, track, tuned, initial_fit)) => {
                 result.track = Some(track);
-                if let (Some(fit), Some(x)) = (initial_fit, opts.initial_state.as_mut()) {
-                    for (a, d) in x.iter_mut().zip(&fit.correction) {
+                if let (Some(correction), Some(x)) = (initial_fit, opts.initial_state.as_mut()) {
+                    for (a, d) in x.iter_mut().zip(&correction) {
                         *a += d;
                     }
                 }
@@ -1236,11 +1231,7 @@ fn finish_with_output_error(
             }
             Ok((r, raised)) => {
                 let keys = setup.param_keys();
-                let flat: Vec<Basis> = setup
-                    .connections
-                    .iter()
-                    .flat_map(|c| c.basis.iter().copied())
-                    .collect();
+                let flat: Vec<Basis> = setup.param_basis();
                 for (j, b) in flat.iter().enumerate() {
                     if matches!(b, Basis::SignU | Basis::SignV) && r.values[j] <= 0.0 {
                         result.notes.push(format!(
@@ -1609,12 +1600,7 @@ fn raise_substeps(
 
 /// A pass's report, parameter track, the Kalman tuning it used and, for a record in
 /// motion, the initial-state correction its innovations call for.
-type PassOutcome = (
-    PassReport,
-    Track,
-    Option<KalmanTuning>,
-    Option<crate::estimate::InitialStateFit>,
-);
+type PassOutcome = (PassReport, Track, Option<KalmanTuning>, Option<Vec<f64>>);
 
 #[allow(clippy::too_many_arguments)]
 fn run_pass(

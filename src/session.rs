@@ -97,8 +97,8 @@ impl WindowCollector {
         &mut self,
         sample: u64,
         t_ns: u64,
-        excitation: &[f64],
-        response: &[f64],
+        excitation: Vec<f64>,
+        response: Vec<f64>,
     ) -> Option<TestData> {
         let start = *self.next_start.get_or_insert(sample);
         if let Some(&last) = self.current.samples.last()
@@ -113,8 +113,8 @@ impl WindowCollector {
         }
         self.current.samples.push(sample);
         self.current.t_ns.push(t_ns);
-        self.current.excitation.push(excitation.to_vec());
-        self.current.response.push(response.to_vec());
+        self.current.excitation.push(excitation);
+        self.current.response.push(response);
         if self.current.len() < self.spec.samples {
             return None;
         }
@@ -319,7 +319,7 @@ mod tests {
     fn feed(c: &mut WindowCollector, samples: impl IntoIterator<Item = u64>) -> Vec<(u64, u64)> {
         let mut out = Vec::new();
         for s in samples {
-            if let Some(w) = c.push(s, s * 10, &[s as f64], &[0.0]) {
+            if let Some(w) = c.push(s, s * 10, vec![s as f64], vec![0.0]) {
                 assert_eq!(w.len(), c.spec().samples);
                 assert!(w.samples.windows(2).all(|p| p[1] == p[0] + 1));
                 assert_eq!(w.excitation[0][0], w.samples[0] as f64);

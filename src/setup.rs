@@ -744,45 +744,6 @@ impl Setup {
         ))
     }
 
-    /// The setup with `[estimator] window_samples` and `window_every` set to `spec`
-    /// (re-read and checked; every other line kept), so that a recording whose attached
-    /// setup carries them replays in the same windows.
-    pub fn with_windows(&self, spec: crate::session::WindowSpec) -> Result<Setup, SetupError> {
-        let keys = [
-            format!("window_samples = {}", spec.samples),
-            format!("window_every = {}", spec.every),
-        ];
-        let mut text = String::new();
-        let mut in_estimator = false;
-        let mut placed = false;
-        for l in self.toml_text.lines() {
-            let t = l.trim_start();
-            if t.starts_with('[') {
-                in_estimator = t.starts_with("[estimator]");
-            }
-            if in_estimator && (t.starts_with("window_samples") || t.starts_with("window_every")) {
-                continue;
-            }
-            text.push_str(l);
-            text.push('\n');
-            if in_estimator && !placed && t.starts_with("[estimator]") {
-                for k in &keys {
-                    text.push_str(k);
-                    text.push('\n');
-                }
-                placed = true;
-            }
-        }
-        if !placed {
-            text.push_str("\n[estimator]\n");
-            for k in &keys {
-                text.push_str(k);
-                text.push('\n');
-            }
-        }
-        Setup::from_toml(&text, &self.origin)
-    }
-
     pub fn from_file(path: &Path) -> Result<Self, SetupError> {
         let text =
             crate::io::read_text_capped(path, crate::io::MAX_SETUP_BYTES).map_err(|source| {
@@ -805,6 +766,14 @@ impl Setup {
     /// Total number of connection parameters.
     pub fn n_params(&self) -> usize {
         self.connections.iter().map(|c| c.basis.len()).sum()
+    }
+
+    /// The basis function of every parameter, in parameter order (as [`Setup::param_keys`]).
+    pub fn param_basis(&self) -> Vec<Basis> {
+        self.connections
+            .iter()
+            .flat_map(|c| c.basis.iter().copied())
+            .collect()
     }
 
     /// `connection.basis` labels, in parameter order.
@@ -1335,24 +1304,20 @@ dt_s = 0.01
         assert_eq!(s.estimator.kind_for(&s.connections), EstimatorKind::Ml);
     }
 
-    /// The window keys are written into the text (with or without an `[estimator]`
-    /// section, replacing earlier ones) and read back; too small a window is an error naming
-    /// the key, and a stride without a window too.
+    /// The window keys are read (the stride defaults to, and is raised to, the window);
+    /// too small a window is an error naming the key, and a stride without a window too.
     #[test]
-    fn windows_are_written_into_the_setup_text() {
+    fn window_keys_are_read_and_checked() {
         use crate::session::WindowSpec;
         let s = Setup::from_toml(TINY, "tiny").unwrap();
         assert_eq!(s.window_spec(), None);
-        let w = s.with_windows(WindowSpec::new(5000, 512_000)).unwrap();
+        let with = |keys: &str| Setup::from_toml(&format!("{TINY}[estimator]\n{keys}\n"), "tiny");
+        let w = with("window_samples = 5000\nwindow_every = 512000").unwrap();
         assert_eq!(w.window_spec(), Some(WindowSpec::new(5000, 512_000)));
-        let again = w.with_windows(WindowSpec::new(800, 100)).unwrap();
-        assert_eq!(again.window_spec(), Some(WindowSpec::new(800, 800)));
-        assert_eq!(again.toml_text.matches("window_samples").count(), 1);
-        let with_section = format!("{TINY}[estimator]\npasses = 3\n");
-        let s2 = Setup::from_toml(&with_section, "tiny").unwrap();
-        let w2 = s2.with_windows(WindowSpec::new(1000, 2000)).unwrap();
-        assert_eq!(w2.estimator.passes, 3);
-        assert_eq!(w2.window_spec(), Some(WindowSpec::new(1000, 2000)));
+        let back_to_back = with("window_samples = 800").unwrap();
+        assert_eq!(back_to_back.window_spec(), Some(WindowSpec::new(800, 800)));
+        let raised = with("window_samples = 800\nwindow_every = 100").unwrap();
+        assert_eq!(raised.window_spec().unwrap().every, 800);
         let small = format!("{TINY}[estimator]\nwindow_samples = 10\n");
         let e = Setup::from_toml(&small, "tiny").unwrap_err().to_string();
         assert!(e.contains("estimator.window_samples"), "{e}");

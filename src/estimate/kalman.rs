@@ -31,8 +31,7 @@ use nalgebra::{DMatrix, DVector};
 
 use super::paper::EstimatorInputs;
 use super::{
-    ConnectionLaw, EstimateError, EstimatorDiagnostics, InitialStateFit, ResidualEstimator,
-    Stations, StepOutput,
+    ConnectionLaw, EstimateError, EstimatorDiagnostics, ResidualEstimator, Stations, StepOutput,
 };
 use crate::integrate::{State, Stepper};
 
@@ -569,27 +568,21 @@ impl ResidualEstimator for KalmanEstimator {
     /// carries its start's free vibration through the whole record (measured: friction off
     /// by up to 3.3 million standard errors). The residual force's part of `δ` is dropped
     /// (its random walk follows it). Needs the stored innovations of a smoothing pass.
-    fn initial_state_fit(&self) -> Option<InitialStateFit> {
+    fn initial_state_fit(&self) -> Option<Vec<f64>> {
         let sm = self.smoother.as_ref()?;
-        let m = self.innov.len();
-        let len = self.hist_innov.len() / m.max(1);
-        if len == 0 {
+        if self.hist_innov.is_empty() {
             return None;
         }
         let (lam, sum) =
             initial_state_information(&sm.psi_t, &sm.ht_sinv, &self.h, &self.hist_innov);
         let r = self.A.transpose() * lam;
         let n_mat = self.A.transpose() * sum * &self.A;
-        let (delta, rank) = pseudo_solve(&n_mat, &r)?;
-        let cost_reduction = r.dot(&delta);
+        let (delta, _) = pseudo_solve(&n_mat, &r)?;
         let correction: Vec<f64> = delta.rows(0, 3 * self.n).iter().copied().collect();
-        (cost_reduction.is_finite() && correction.iter().all(|x| x.is_finite())).then_some(
-            InitialStateFit {
-                correction,
-                cost_reduction,
-                rank,
-            },
-        )
+        correction
+            .iter()
+            .all(|x| x.is_finite())
+            .then_some(correction)
     }
 }
 
@@ -621,7 +614,7 @@ pub fn initial_state_information(
     let mut lam = DVector::<f64>::zeros(nz);
     let mut tmp = DVector::<f64>::zeros(nz);
     for i in (0..len).rev() {
-        let e = DVector::from_column_slice(&innovations[i * m..(i + 1) * m]);
+        let e = nalgebra::DVectorView::from_slice(&innovations[i * m..(i + 1) * m], m);
         tmp.gemv(1.0, psi_t, &lam, 0.0);
         tmp.gemv(1.0, ht_sinv, &e, 1.0);
         std::mem::swap(&mut lam, &mut tmp);

@@ -125,21 +125,12 @@ pub trait ResidualEstimator: Send {
     /// long (a record that starts in motion). Estimators that cannot (the 1989 one) ignore
     /// it; `identify` refuses such records for them.
     fn set_initial_state(&mut self, _offset: &[f64]) {}
-    /// After a pass: the least-squares correction of the initial state `(u; u̇; ü)` that
-    /// the pass's innovations call for (see `kalman::KalmanEstimator::initial_state_fit`).
-    fn initial_state_fit(&self) -> Option<InitialStateFit> {
+    /// After a pass: the least-squares correction of the initial state `(u; u̇; ü)` (`3n`,
+    /// to add to the state the pass started from) that the pass's innovations call for
+    /// (see `kalman::KalmanEstimator::initial_state_fit`).
+    fn initial_state_fit(&self) -> Option<Vec<f64>> {
         None
     }
-}
-
-/// The initial-state correction a pass's innovations call for: `correction` (`3n`, to add
-/// to the state the pass started from), the innovation cost it removes and the rank of the
-/// initial state's information.
-#[derive(Debug, Clone)]
-pub struct InitialStateFit {
-    pub correction: Vec<f64>,
-    pub cost_reduction: f64,
-    pub rank: usize,
 }
 
 /// The connection law `f = Σ pⱼ vⱼ(δ, δ̇, δ̈)` with the current parameter estimate, split

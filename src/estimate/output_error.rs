@@ -73,15 +73,6 @@ fn is_sign(b: &Basis) -> bool {
     matches!(b, Basis::SignU | Basis::SignV)
 }
 
-/// Flat list of the basis functions of all connections, in parameter order.
-fn flat_basis(setup: &Setup) -> Vec<Basis> {
-    setup
-        .connections
-        .iter()
-        .flat_map(|c| c.basis.iter().copied())
-        .collect()
-}
-
 /// Friction levels below zero are not a law the simulator can run; clamp them.
 fn feasible(basis: &[Basis], p: &[f64]) -> Vec<f64> {
     p.iter()
@@ -100,7 +91,7 @@ pub fn residuals(
     sigma: &[f64],
     substeps: usize,
 ) -> Result<(Vec<f64>, f64), SimulateError> {
-    let basis = flat_basis(setup);
+    let basis = setup.param_basis();
     let y = response_to_excitation(
         setup,
         model,
@@ -151,7 +142,7 @@ pub fn sensitivities(
     sigma: &[f64],
     substeps: usize,
 ) -> Result<Sensitivities, SimulateError> {
-    let basis = flat_basis(setup);
+    let basis = setup.param_basis();
     let p0 = feasible(&basis, params);
     let run = |p: &[f64]| response_to_excitation(setup, model, p, excitation, setup.dt_s, substeps);
     let y0 = run(&p0)?;
@@ -295,7 +286,7 @@ pub fn refine(
     substeps: usize,
     max_iter: usize,
 ) -> Result<Refined, SimulateError> {
-    let basis = flat_basis(setup);
+    let basis = setup.param_basis();
     let nobs = (excitation.len() * sigma.len()) as f64;
     let mut p = feasible(&basis, start);
     let mut scales = scales.to_vec();
@@ -500,7 +491,7 @@ pub fn refine_global(
     let plain = refine(
         setup, model, start, scales, excitation, response, sigma, substeps, max_iter,
     )?;
-    let basis = flat_basis(setup);
+    let basis = setup.param_basis();
     let Some(j) = basis.iter().position(|b| matches!(b, Basis::U)) else {
         return Ok(plain);
     };

@@ -50,11 +50,12 @@ pub struct Predictor {
     /// The state `(u; u̇; ü)` the predictions start from, as offsets from rest (a record
     /// that starts in motion; `IdentifyOptions::initial_state`). `None`: at rest.
     pub initial: Option<Vec<f64>>,
-    /// `Ψᵀ` with `Ψ = Φ (I − K H)` (the prediction's error recursion), `Hᵀ S⁻¹` and `H`:
-    /// the initial-state fit's matrices.
+    /// `Ψᵀ` with `Ψ = Φ (I − K H)` (the prediction's error recursion), and `W H` with its
+    /// transpose (`W` = `whiten`): the initial-state fit's matrices for whitened
+    /// innovations (`(W H)ᵀ W e = Hᵀ S⁻¹ e`, `(W H)ᵀ W H = Hᵀ S⁻¹ H`).
     psi_t: DMatrix<f64>,
-    ht_sinv: DMatrix<f64>,
-    h: DMatrix<f64>,
+    wh: DMatrix<f64>,
+    wh_t: DMatrix<f64>,
 }
 
 impl Predictor {
@@ -66,18 +67,20 @@ impl Predictor {
     pub fn project_out_initial_state(&self, cols: &mut [Vec<f64>]) {
         let m = self.whiten.nrows();
         let psi = self.psi_t.transpose();
-        let wh = &self.whiten * &self.h;
+        let (mut v, mut next) = (DVector::zeros(psi.nrows()), DVector::zeros(psi.nrows()));
+        let mut g = DVector::zeros(m);
         for col in cols.iter_mut() {
             let Some((a, _)) = self.initial_state_solve(col) else {
                 continue;
             };
-            let mut v = a;
+            v.copy_from(&a);
             for w in col.chunks_mut(m) {
-                let g = &wh * &v;
+                g.gemv(1.0, &self.wh, &v, 0.0);
                 for (x, y) in w.iter_mut().zip(g.iter()) {
                     *x -= y;
                 }
-                v = &psi * v;
+                next.gemv(1.0, &psi, &v, 0.0);
+                std::mem::swap(&mut v, &mut next);
             }
         }
     }
@@ -87,18 +90,11 @@ impl Predictor {
     /// equations (`λᵀδ` is the cost it removes); see
     /// `kalman::initial_state_information`.
     fn initial_state_solve(&self, whitened: &[f64]) -> Option<(DVector<f64>, DVector<f64>)> {
-        let m = self.whiten.nrows();
-        // Back from whitened to raw innovations: e = L r (S = L Lᵀ, whiten = L⁻¹).
-        let l = self.whiten.clone().try_inverse()?;
-        let mut raw = Vec::with_capacity(whitened.len());
-        for w in whitened.chunks(m) {
-            raw.extend((&l * DVector::from_column_slice(w)).iter());
-        }
         let (lam, sum) = crate::estimate::kalman::initial_state_information(
             &self.psi_t,
-            &self.ht_sinv,
-            &self.h,
-            &raw,
+            &self.wh_t,
+            &self.wh,
+            whitened,
         );
         let (delta, _) = crate::estimate::kalman::pseudo_solve(&sum, &lam)?;
         Some((delta, lam))
@@ -122,14 +118,6 @@ impl Predictor {
         }
         Some(reduction)
     }
-}
-
-fn flat_basis(setup: &Setup) -> Vec<Basis> {
-    setup
-        .connections
-        .iter()
-        .flat_map(|c| c.basis.iter().copied())
-        .collect()
 }
 
 fn is_sign(b: &Basis) -> bool {
@@ -197,11 +185,11 @@ pub fn predictor(
         return Err(SimulateError::Singular);
     }
     let psi_t = (&phi * (DMatrix::identity(3 * n, 3 * n) - &gain * &H)).transpose();
-    let ht_sinv = H.transpose() * &sinv;
+    let wh = &linv * &H;
     Ok(Predictor {
         psi_t,
-        ht_sinv,
-        h: H,
+        wh_t: wh.transpose(),
+        wh,
         initial: None,
         gain,
         whiten: linv,
@@ -221,7 +209,7 @@ pub fn innovations(
     response: &[Vec<f64>],
     substeps: usize,
 ) -> Result<(Vec<f64>, f64), SimulateError> {
-    let basis = flat_basis(setup);
+    let basis = setup.param_basis();
     let y = predictions_with_observer(
         setup,
         model,
@@ -471,7 +459,7 @@ pub fn refine(
     max_iter: usize,
     initial: Option<&[f64]>,
 ) -> Result<PemRefined, SimulateError> {
-    let basis = flat_basis(setup);
+    let basis = setup.param_basis();
     let m = sigma.len();
     let nobs = (excitation.len() * m) as f64;
     let mut p = feasible(&basis, start);

@@ -141,11 +141,7 @@ pub(super) fn pem_undetermined(
     in_motion: bool,
 ) -> Option<String> {
     let keys = setup.param_keys();
-    let basis: Vec<Basis> = setup
-        .connections
-        .iter()
-        .flat_map(|c| c.basis.iter().copied())
-        .collect();
+    let basis: Vec<Basis> = setup.param_basis();
     for (j, (v, se)) in r.values.iter().zip(&r.std_errors).enumerate() {
         let friction = matches!(basis[j], Basis::SignU | Basis::SignV);
         let (s0, e0) = (
@@ -196,11 +192,7 @@ pub(super) fn refine_by_prediction_error(
 ) -> Result<(crate::estimate::prediction_error::PemRefined, usize), crate::simulate::SimulateError>
 {
     use crate::estimate::prediction_error::refine;
-    let keys: Vec<Basis> = setup
-        .connections
-        .iter()
-        .flat_map(|c| c.basis.iter().copied())
-        .collect();
+    let keys: Vec<Basis> = setup.param_basis();
     let level = keys
         .iter()
         .zip(start)
@@ -302,11 +294,7 @@ mod tests {
         .unwrap();
         let setup = Setup::from_toml(&text, "two-beam-friction.toml").unwrap();
         let n = setup.param_keys().len();
-        let basis: Vec<Basis> = setup
-            .connections
-            .iter()
-            .flat_map(|c| c.basis.iter().copied())
-            .collect();
+        let basis: Vec<Basis> = setup.param_basis();
         let f = basis
             .iter()
             .position(|b| matches!(b, Basis::SignU))

@@ -244,7 +244,7 @@ fn identify_windows_stage(
         match rx.recv() {
             Ok(Msg::Data(AlignedItem::Sample(a))) => {
                 report.samples_seen += 1;
-                if let Some(w) = collector.push(a.sample, a.t_ns, &a.excitation, &a.response) {
+                if let Some(w) = collector.push(a.sample, a.t_ns, a.excitation, a.response) {
                     run(w, &mut report, &mut bounds, &mut last);
                 }
             }
