@@ -223,9 +223,15 @@ enum Command {
         /// End this long (s) after a publisher vanished without end-of-stream and none came back.
         #[arg(long, default_value_t = 10.0)]
         idle_timeout: f64,
-        /// Samples of the first segment kept for the final batch identification (0: none).
-        #[arg(long, default_value_t = 20_000)]
-        buffer_samples: usize,
+        /// Samples per identification window (default: the setup's `window_samples`, else
+        /// 20,000; 0: no windows, the online fit alone). Each window is identified on a
+        /// worker thread while the test runs; their combination is the session's answer.
+        #[arg(long, alias = "buffer-samples")]
+        window_samples: Option<usize>,
+        /// Seconds of stream from one window's start to the next one's (default: the
+        /// setup's `window_every`, else 20).
+        #[arg(long)]
+        window_every: Option<f64>,
         /// Tune the online Kalman filter by likelihood over the warm-up samples (better
         /// online values; stalls the stepper ~0.3 s once, see README).
         #[arg(long)]
@@ -478,7 +484,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
             seconds,
             rate,
             idle_timeout,
-            buffer_samples,
+            window_samples,
+            window_every,
             record_residuals_every,
             tune_warmup,
             json,
@@ -500,7 +507,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
             o.rate_hz = rate;
             o.idle_timeout = std::time::Duration::from_secs_f64(idle_timeout.max(0.0));
             o.record = record;
-            o.buffer_samples = buffer_samples;
+            o.window_samples = window_samples;
+            o.window_every_s = window_every;
             o.record_residuals_every = record_residuals_every;
             o.tune_warmup = tune_warmup;
             live(&s, o, json)
@@ -612,13 +620,24 @@ fn live(setup: &Setup, o: LiveOptions, json: bool) -> Result<ExitCode> {
             f.transport_drops,
             report.outputs_dropped
         );
-        let kind = if report.final_identification.is_some() {
-            format!(
-                "batch identification over the first {} samples",
-                report.final_samples
-            )
-        } else {
-            "online fit".into()
+        let session = report
+            .final_identification
+            .as_ref()
+            .and_then(|i| i.session.as_ref().map(|s| (i, s)));
+        if let Some((id, s)) = session {
+            print_windows(s, id);
+        }
+        let kind = match session {
+            Some((_, s)) => format!(
+                "{} window(s) combined, {} samples seen",
+                s.windows.iter().filter(|w| w.failure.is_none()).count(),
+                s.samples_seen
+            ),
+            None if !report.window_parameters.is_empty() => format!(
+                "combination of the {} window(s) identified before the stop",
+                report.windows_identified
+            ),
+            None => "online fit (indicative, docs/LIVE.md)".into(),
         };
         println!("final parameters ({kind}):");
         for p in report.final_parameters() {
@@ -635,11 +654,22 @@ fn live(setup: &Setup, o: LiveOptions, json: bool) -> Result<ExitCode> {
 }
 
 fn progress_line(r: &LiveReport) -> String {
-    let params: Vec<String> = r
-        .online_parameters
+    // The windows' combination once there is one (the session's answer), else the online
+    // fit, labelled.
+    let (label, shown) = if r.window_parameters.is_empty() {
+        ("online", &r.online_parameters)
+    } else {
+        ("windows", &r.window_parameters)
+    };
+    let params: Vec<String> = shown
         .iter()
         .map(|p| format!("{} {:.4e}±{:.1e}", p.key, p.value, p.std_error))
         .collect();
+    let params = if params.is_empty() {
+        String::new()
+    } else {
+        format!("{label}: {}", params.join(", "))
+    };
     format!(
         "{} samples | {:.0} samples/s | RTF {:.2} | latency p50 {:.0} µs p99 {:.0} µs max {:.0} µs | missing {} late {} dropped-out {} | {}",
         r.samples,
@@ -651,7 +681,7 @@ fn progress_line(r: &LiveReport) -> String {
         r.faults.missing_samples,
         r.faults.late_or_duplicate,
         r.outputs_dropped,
-        params.join(", ")
+        params
     )
 }
 

@@ -41,7 +41,7 @@ fn main() -> anyhow::Result<()> {
         };
         let shm_hung = shm.clone();
         let mut lo = LiveOptions::new(shm.clone());
-        lo.buffer_samples = 0;
+        lo.window_samples = Some(0);
         lo.refit_every = rate as usize;
         let ao = AcquireOptions {
             shm,

@@ -90,6 +90,11 @@ pub enum IdentifyError {
         sigma: f64,
         ratio: f64,
     },
+    /// A window cut from a longer record: in motion whatever its first sample reads.
+    #[error(
+        "the window starts mid-record (sample {sample}), in motion, and this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a `sign(u)` term; with accelerometers only a start in motion cannot even be seen in the data); identify the whole record, or windows with `--no-refine` (the Kalman passes estimate the initial state) or, for a law linear in the state, with `--estimator ml`"
+    )]
+    MidRecord { sample: u64 },
     #[error(
         "{context}: the output-error stage started from a scan did not settle — its probes kept finding lower costs and moved `{parameter}` by {moved:.1} of the stated standard errors (limit {}; up to {} restarts from the probe's end tried); refused rather than reported with errors that would not hold",
         MAX_SCAN_PROBE_MOVE,
@@ -172,6 +177,11 @@ pub struct IdentifyOptions {
     /// initial-state fit); every filter run and the prediction-error refinement start
     /// from it. `None`: at rest.
     pub initial_state: Option<Vec<f64>>,
+    /// The record is a window cut from a longer one at this sample: in motion whatever
+    /// its first sample reads (with accelerometers only, a start in motion cannot be seen
+    /// in the data; measured: windows of an accelerometer-only record identified as if at
+    /// rest were up to 180 standard errors off). `None`: a record of its own.
+    pub starts_mid_record: Option<u64>,
     /// Kalman: evaluate the non-linear connection force at the predicted state.
     pub semi_implicit: bool,
     /// Kalman: model-error force std at every DOF, N. `None`: tuned with σ_R when that is
@@ -219,6 +229,7 @@ impl IdentifyOptions {
             tune_noise_scale: true,
             tune_samples: 0,
             initial_state: None,
+            starts_mid_record: None,
             semi_implicit: true,
             model_error_std: None,
             tune_model_error: false,
@@ -905,7 +916,21 @@ pub fn identify(
     let (sigma, estimated) = channel_noise(setup, data);
     let mut params = setup.initial_params();
     let mut motion_note = None;
-    if let Err(refusal) = starts_at_rest(setup, data, &sigma) {
+    let motion = match opts.starts_mid_record {
+        Some(sample) => Err(IdentifyError::MidRecord { sample }),
+        None => starts_at_rest(setup, data, &sigma),
+    };
+    if motion.is_ok()
+        && !setup
+            .sensors
+            .iter()
+            .any(|s| matches!(s.quantity, Quantity::Displacement | Quantity::Velocity))
+    {
+        motion_note = Some(
+            "accelerometers only: whether the record starts at rest cannot be checked from its first sample; it is identified as starting at rest (a record cut from a test in motion would be biased; maximum likelihood, `--estimator ml`, estimates the initial state)".to_string(),
+        );
+    }
+    if let Err(refusal) = motion {
         // The Kalman passes estimate the initial state, and so does the prediction-error
         // refinement that follows them for `sign(u)` laws; the free-run output error and
         // the 1989 estimator start at rest.
@@ -931,6 +956,9 @@ pub fn identify(
                 } => format!(
                     "the record starts in motion (`{sensor}` reads {value:.4e} at its first sample, {ratio:.0}× its noise std)"
                 ),
+                IdentifyError::MidRecord { sample } => {
+                    format!("the window starts mid-record (sample {sample}), in motion")
+                }
                 other => other.to_string(),
             }
         ));

@@ -14,8 +14,9 @@
 //! record, and the windows are a deterministic function of the sample indices, so anyone
 //! replaying the record with the same `W` and `S` (`[estimator] window_samples`,
 //! `window_every` in the setup) gets the same numbers. `jointid replay` uses it when the
-//! setup asks; `jointid live` does not yet (its final batch is still the first segment's
-//! buffer).
+//! setup asks; `jointid live` always does (its windows are identified on a worker thread
+//! while the test runs, and the recording's attached setup carries the window keys, so
+//! `jointid replay` on the recording repeats them).
 //!
 //! # Schedule (deterministic from the sample indices)
 //!
@@ -70,6 +71,9 @@ pub struct WindowCollector {
     spec: WindowSpec,
     /// Index at or after which the next window starts (`None` before the first sample).
     next_start: Option<u64>,
+    /// The record's first sample: a window that starts there may be at rest, every other
+    /// one starts in motion.
+    record_first: Option<u64>,
     current: TestData,
     /// Windows completed so far.
     pub completed: usize,
@@ -82,6 +86,7 @@ impl WindowCollector {
         Self {
             spec,
             next_start: None,
+            record_first: None,
             current: TestData::default(),
             completed: 0,
             abandoned: 0,
@@ -92,6 +97,11 @@ impl WindowCollector {
         self.spec
     }
 
+    /// The record's first sample (`None` before it).
+    pub fn record_first(&self) -> Option<u64> {
+        self.record_first
+    }
+
     /// Takes one aligned sample; returns a window when this sample completes it.
     pub fn push(
         &mut self,
@@ -100,6 +110,7 @@ impl WindowCollector {
         excitation: Vec<f64>,
         response: Vec<f64>,
     ) -> Option<TestData> {
+        self.record_first.get_or_insert(sample);
         let start = *self.next_start.get_or_insert(sample);
         if let Some(&last) = self.current.samples.last()
             && sample != last.wrapping_add(1)
@@ -228,17 +239,28 @@ impl SessionReport {
     }
 }
 
-/// Identify one window: exactly `identify` over its samples (what `jointid replay` does
-/// with a record of these samples). Returns the estimate to combine and the
-/// identification.
+/// Identify one window: `identify` over its samples, told that the window starts
+/// mid-record (in motion) unless it starts at the record's first sample `record_first`
+/// ([`IdentifyOptions::starts_mid_record`]: with accelerometers only a start in motion
+/// cannot be seen in the data). Returns the estimate to combine and the identification.
 pub fn identify_window(
     setup: &Setup,
     data: &TestData,
     opts: &IdentifyOptions,
     truth: Option<&[f64]>,
+    record_first: Option<u64>,
     on_pass: &mut dyn FnMut(&crate::identify::PassReport),
 ) -> (WindowEstimate, Result<Identification, IdentifyError>) {
-    let id = identify(setup, data, opts, truth, on_pass, &mut |_, _| {});
+    let first = data.samples.first().copied();
+    let id = if first.is_some() && first != record_first {
+        let opts = IdentifyOptions {
+            starts_mid_record: first,
+            ..opts.clone()
+        };
+        identify(setup, data, &opts, truth, on_pass, &mut |_, _| {})
+    } else {
+        identify(setup, data, opts, truth, on_pass, &mut |_, _| {})
+    };
     let mut est = WindowEstimate {
         first_sample: data.samples.first().copied().unwrap_or(0),
         last_sample: data.samples.last().copied().unwrap_or(0),
@@ -256,6 +278,71 @@ pub fn identify_window(
         Err(e) => est.failure = Some(e.to_string()),
     }
     (est, id)
+}
+
+/// The running state of a windowed identification, shared by `jointid replay` and
+/// `jointid live` so that both show the same thing: every window's estimate, every good
+/// window's Cramér–Rao bounds, and the identification shown (the last good window's; a
+/// failed one only while no window was good), with the data it came from.
+#[derive(Debug)]
+pub struct WindowedSession<E> {
+    pub report: SessionReport,
+    bounds: Vec<Vec<Option<f64>>>,
+    last: Option<(TestData, Result<Identification, E>)>,
+}
+
+impl<E> WindowedSession<E> {
+    pub fn new(spec: WindowSpec) -> Self {
+        Self {
+            report: SessionReport::new(spec),
+            bounds: Vec::new(),
+            last: None,
+        }
+    }
+
+    /// Adds one identified window (`data`: its samples, kept only for the window shown;
+    /// pass an empty one when they are not needed).
+    pub fn add(&mut self, est: WindowEstimate, id: Result<Identification, E>, data: TestData) {
+        let good = est.failure.is_none();
+        if good && let Ok(i) = &id {
+            self.bounds.push(
+                i.final_parameters()
+                    .map(|ps| ps.iter().map(|p| p.crlb).collect())
+                    .unwrap_or_default(),
+            );
+        }
+        self.report.windows.push(est);
+        // A failed window after good ones does not take their place.
+        let shown_is_bad = self
+            .last
+            .as_ref()
+            .is_none_or(|(_, l)| l.as_ref().map_or(true, |i| i.failure.is_some()));
+        if good || shown_is_bad {
+            self.last = Some((data, id));
+        }
+    }
+
+    /// Windows identified so far (good or not).
+    pub fn windows(&self) -> usize {
+        self.report.windows.len()
+    }
+
+    /// The combination of the windows so far.
+    pub fn combined(&self) -> Option<Combined> {
+        combine(&self.report.windows)
+    }
+
+    /// The window shown, its final parameters replaced by the combination of all
+    /// ([`with_combination`]); `None` when no window was identified.
+    pub fn finish(self) -> Option<(TestData, Result<Identification, E>)> {
+        let Self {
+            report,
+            bounds,
+            last,
+        } = self;
+        let (data, id) = last?;
+        Some((data, id.map(|i| with_combination(i, report, &bounds))))
+    }
 }
 
 /// The identification of the last window with its final parameters replaced by the

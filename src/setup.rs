@@ -744,6 +744,45 @@ impl Setup {
         ))
     }
 
+    /// The setup with `[estimator] window_samples` and `window_every` set to `spec`
+    /// (re-read and checked; every other line kept), so that a recording whose attached
+    /// setup carries them replays in the same windows.
+    pub fn with_windows(&self, spec: crate::session::WindowSpec) -> Result<Setup, SetupError> {
+        let keys = [
+            format!("window_samples = {}", spec.samples),
+            format!("window_every = {}", spec.every),
+        ];
+        let mut text = String::new();
+        let mut in_estimator = false;
+        let mut placed = false;
+        for l in self.toml_text.lines() {
+            let t = l.trim_start();
+            if t.starts_with('[') {
+                in_estimator = t.starts_with("[estimator]");
+            }
+            if in_estimator && (t.starts_with("window_samples") || t.starts_with("window_every")) {
+                continue;
+            }
+            text.push_str(l);
+            text.push('\n');
+            if in_estimator && !placed && t.starts_with("[estimator]") {
+                for k in &keys {
+                    text.push_str(k);
+                    text.push('\n');
+                }
+                placed = true;
+            }
+        }
+        if !placed {
+            text.push_str("\n[estimator]\n");
+            for k in &keys {
+                text.push_str(k);
+                text.push('\n');
+            }
+        }
+        Setup::from_toml(&text, &self.origin)
+    }
+
     pub fn from_file(path: &Path) -> Result<Self, SetupError> {
         let text =
             crate::io::read_text_capped(path, crate::io::MAX_SETUP_BYTES).map_err(|source| {
@@ -1318,6 +1357,17 @@ dt_s = 0.01
         assert_eq!(back_to_back.window_spec(), Some(WindowSpec::new(800, 800)));
         let raised = with("window_samples = 800\nwindow_every = 100").unwrap();
         assert_eq!(raised.window_spec().unwrap().every, 800);
+        // Written into the text (with or without an `[estimator]` section, replacing
+        // earlier keys), as `jointid live` attaches them to its recording.
+        let written = s.with_windows(WindowSpec::new(5000, 512_000)).unwrap();
+        assert_eq!(written.window_spec(), Some(WindowSpec::new(5000, 512_000)));
+        let again = written.with_windows(WindowSpec::new(800, 100)).unwrap();
+        assert_eq!(again.window_spec(), Some(WindowSpec::new(800, 800)));
+        assert_eq!(again.toml_text.matches("window_samples").count(), 1);
+        let s2 = with("passes = 3").unwrap();
+        let w2 = s2.with_windows(WindowSpec::new(1000, 2000)).unwrap();
+        assert_eq!(w2.estimator.passes, 3);
+        assert_eq!(w2.window_spec(), Some(WindowSpec::new(1000, 2000)));
         let small = format!("{TINY}[estimator]\nwindow_samples = 10\n");
         let e = Setup::from_toml(&small, "tiny").unwrap_err().to_string();
         assert!(e.contains("estimator.window_samples"), "{e}");

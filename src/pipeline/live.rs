@@ -33,7 +33,7 @@
 //! | non-finite value | the sample is dropped and counted (`non_finite`); the next one starts a new segment |
 //! | excitation and response time stamps of one sample differ by more than dt/2, or the stream interval differs from the rate in use by more than 1 % | fatal: `Quit` with an error naming both, outputs finalised, exit non-zero |
 //! | wrong channel count | fatal, naming the stream, sample and counts |
-//! | publisher killed | reported (`publisher gone without end-of-stream`), dead node cleaned by the subscriber, a restarted publisher is picked up; the recording takes its run after a one-sample gap (the sink's `record_offset`) |
+//! | publisher killed | reported (`publisher gone without end-of-stream`), dead node cleaned by the subscriber, a restarted publisher is picked up; the recording takes its run after a one-sample gap (`SessionIndex`; the windows follow the same indices) |
 //! | slow viewer of our outputs | the outgoing queues are bounded and written with `try_send`: outputs are dropped and counted (`outputs_dropped`), never the input path |
 //! | two sessions on one machine | `--prefix` (iceoryx2 `global.prefix`) and `--session` keep them apart |
 //!
@@ -47,16 +47,27 @@
 //! fit every `--refit-every` samples. These *online* values are what a single filter
 //! pass can give; they are not the identification's final answer.
 //!
-//! At the end of the stream (not after a signal or a fatal fault: they ask to stop now, and
-//! leave the batch to `jointid replay` on the recording), the refitter runs the full identification
-//! ([`crate::identify::identify`], the same code as `jointid replay`) over the first
-//! segment's buffered samples (at most `--buffer-samples`), so the final parameters equal
-//! those of `jointid replay session.mcap` on the recorded session when the session is no
-//! longer than the buffer (replay also stops at the first gap; a longer recording is
-//! identified whole by replay, or as live did with a one-window setup, docs/LIVE.md). It
-//! costs about 0.5 ms per buffered sample (10 passes with Kalman tuning, the refinement on
-//! two threads), hence the default of 20,000. `--buffer-samples 0` turns the buffer and the
-//! batch refit off (memory then stays flat however long the session runs).
+//! # Windows: the session's identification while the test runs
+//!
+//! The refitter also cuts the stream into **windows** ([`crate::session`]): `W` contiguous
+//! samples (`--window-samples`, default [`DEFAULT_WINDOW_SAMPLES`]) started every
+//! `--window-every` seconds of stream (default [`DEFAULT_WINDOW_EVERY_S`]), a schedule fixed
+//! by the sample indices. Each completed window goes to a worker thread that identifies it
+//! with the full identification ([`crate::identify::identify`], the same code as `jointid
+//! replay`), and the combination of the windows identified so far (inverse variance, widened
+//! by the Birge ratio when they disagree) is published as `batch` parameters: the session's
+//! running answer, over the whole session, in bounded memory (one window being collected
+//! and at most [`MAX_PENDING_WINDOWS`] waiting). The recording's attached setup is the one
+//! at the stream's rate with the window keys (`[estimator] window_samples`, `window_every`),
+//! so `jointid replay session.mcap` identifies the same windows and prints the same final
+//! parameters. A session shorter than one window is identified whole at its end, as replay
+//! does. A window that completes while [`MAX_PENDING_WINDOWS`] wait is skipped with a
+//! warning (replay then has one window more than live).
+//!
+//! At the end of the stream the refitter waits for the windows still queued. A signal or a
+//! fatal fault asks to stop now: the windows identified so far give the final values and
+//! the rest is left to `jointid replay` on the recording. `--window-samples 0` turns the
+//! windows off (the online fit alone).
 
 use std::collections::VecDeque;
 use std::path::PathBuf;
@@ -77,7 +88,7 @@ use crate::estimate::paper::{EstimatorInputs, PaperEstimator};
 use crate::estimate::{ConnectionLaw, ResidualEstimator, StepOutput};
 use crate::identify::{
     Identification, IdentifyOptions, ParameterAccumulator, TestData, channel_noise,
-    check_observability, identify, tune_kalman,
+    check_observability, tune_kalman,
 };
 use crate::io::Frame;
 use crate::io::contract::{self, CONTRACT_VERSION, LOG_TOPIC, LogLevel, LogMsg};
@@ -87,6 +98,9 @@ use crate::io::mcap::{
 };
 use crate::io::shm::{self, ShmEvent, ShmOptions};
 use crate::model::Model;
+use crate::session::{
+    WindowCollector, WindowEstimate, WindowSpec, WindowedSession, identify_window,
+};
 use crate::setup::{EstimatorKind, Setup};
 
 /// Samples used to estimate channel noise levels the setup does not give, before the
@@ -135,8 +149,12 @@ pub struct LiveOptions {
     pub record: Option<PathBuf>,
     /// Record every k-th residual (1 = all).
     pub record_residuals_every: usize,
-    /// Samples of the first segment buffered for the final batch refit (0 = none).
-    pub buffer_samples: usize,
+    /// Samples per identification window (`None`: the setup's `window_samples`, else
+    /// [`DEFAULT_WINDOW_SAMPLES`]; 0: no windows).
+    pub window_samples: Option<usize>,
+    /// Seconds of stream from one window's start to the next one's (`None`: the setup's
+    /// `window_every` when it sets windows, else [`DEFAULT_WINDOW_EVERY_S`]).
+    pub window_every_s: Option<f64>,
     /// Tune the Kalman filter (random walk, noise scale) by likelihood over the warm-up
     /// samples before stepping. Better online values (shipped test: spring −4 % instead of
     /// −25 %), but it stalls the stepper for ~0.3 s once: with an unpaced 51.2 kHz source
@@ -149,7 +167,37 @@ pub struct LiveOptions {
     pub progress_interval: Duration,
 }
 
+/// Default samples per window of a live session: about 10–20 s of identification on two
+/// cores for the shipped two-beam setups (BENCHMARKS.md).
+pub const DEFAULT_WINDOW_SAMPLES: usize = 20_000;
+/// Default stride of a live session's windows, seconds of stream: the worker identifies a
+/// default window in less than this, so it keeps up at any rate.
+pub const DEFAULT_WINDOW_EVERY_S: f64 = 20.0;
+/// Completed windows that may wait for the identification worker; a window completed
+/// beyond that is skipped with a warning (memory stays bounded).
+pub const MAX_PENDING_WINDOWS: usize = 4;
+
 impl LiveOptions {
+    /// The session's windows at the stream's interval `dt_s` (see [`LiveOptions`]'s
+    /// fields); `None` when they are off.
+    pub fn window_spec(&self, setup: &Setup, dt_s: f64) -> Option<WindowSpec> {
+        let from_setup = setup.window_spec();
+        let samples = self
+            .window_samples
+            .or(from_setup.map(|w| w.samples))
+            .unwrap_or(DEFAULT_WINDOW_SAMPLES);
+        if samples == 0 {
+            return None;
+        }
+        let seconds = |s: f64| (s / dt_s).round().max(1.0) as usize;
+        let every = match (self.window_every_s, from_setup) {
+            (Some(s), _) => seconds(s),
+            (None, Some(w)) => w.every,
+            (None, None) => seconds(DEFAULT_WINDOW_EVERY_S),
+        };
+        Some(WindowSpec::new(samples, every))
+    }
+
     pub fn new(shm: ShmOptions) -> Self {
         Self {
             shm,
@@ -161,7 +209,8 @@ impl LiveOptions {
             rate_hz: None,
             record: None,
             record_residuals_every: 1,
-            buffer_samples: 20_000,
+            window_samples: None,
+            window_every_s: None,
             tune_warmup: false,
             stop: Arc::default(),
             progress_interval: Duration::from_secs(1),
@@ -224,14 +273,19 @@ pub struct LiveReport {
     /// Output frames our publishers discarded for a stalled viewer (bounded backpressure:
     /// a viewer that does not read never slows the pipeline).
     pub viewer_discards: u64,
-    /// Periodic refits published (online fits, or batch refits of a batch-only session).
+    /// Periodic estimates published (online fits and windows' combinations).
     pub refits: u64,
-    /// The latest periodic estimate (online fit, or a batch-only session's batch refit).
+    /// The latest online fit (Step V over the filter's residual forces: indicative; its
+    /// errors do not include the filter's bias, docs/LIVE.md).
     pub online_parameters: Vec<LiveParameter>,
-    /// The final batch identification over the buffered first segment.
+    /// Windows identified so far.
+    pub windows_identified: u64,
+    /// The latest combination of the identified windows: the session's running answer.
+    pub window_parameters: Vec<LiveParameter>,
+    /// The final identification: the last good window's, carrying the combination of all
+    /// windows (`session`), as `jointid replay` on the recording gives it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub final_identification: Option<Identification>,
-    pub final_samples: usize,
     pub warnings: Vec<String>,
     /// Why the stream ended: "end-of-stream", "sample limit", "time limit", "stopped"
     /// (Ctrl-C/SIGTERM), "idle", or "error: …" with the fatal error.
@@ -258,7 +312,8 @@ impl LiveReport {
         v
     }
 
-    /// The final parameters: the batch identification's when it ran, else the online fit.
+    /// The final parameters: the windows' final identification when there is one, else
+    /// the latest combination of windows, else the online fit.
     pub fn final_parameters(&self) -> Vec<LiveParameter> {
         if let Some(p) = self
             .final_identification
@@ -273,6 +328,9 @@ impl LiveReport {
                     std_error: p.std_error,
                 })
                 .collect();
+        }
+        if !self.window_parameters.is_empty() {
+            return self.window_parameters.clone();
         }
         self.online_parameters.clone()
     }
@@ -693,7 +751,9 @@ pub fn snap_rate_hz(dt_ns: f64) -> f64 {
 // ---------------------------------------------------------------------------------------
 // Stepper
 
-/// What the stepper sends on.
+/// What the stepper sends on. Samples are the hot path and go unboxed (one allocation
+/// fewer per sample); the setup is boxed.
+#[allow(clippy::large_enum_variant)]
 enum Stepped {
     /// `late`: stepped after the warm-up wait (excluded from the latency figures).
     Sample {
@@ -701,12 +761,8 @@ enum Stepped {
         out: Option<StepOutput>,
         late: bool,
     },
-    /// The buffered first segment and the setup at the stream's rate, for the final refit.
-    Buffered {
-        data: TestData,
-        setup: Box<Setup>,
-    },
-    /// Batch-only sessions: the setup at the stream's rate, for the periodic batch refits.
+    /// The setup at the stream's rate, for the windows' identifications (sent before the
+    /// first sample).
     RateSetup(Box<Setup>),
     Notice(String),
     Warning(String),
@@ -768,8 +824,6 @@ struct StepperState {
     warmup: Vec<Aligned>,
     sigma: Vec<f64>,
     started: bool,
-    buffer: TestData,
-    buffer_open: bool,
     out: StepOutput,
 }
 
@@ -778,7 +832,6 @@ fn stepper_stage(
     tx: Sender<Msg<Stepped>>,
     base: &Setup,
     kind: EstimatorKind,
-    buffer_samples: usize,
     tune: bool,
     batch_only: bool,
 ) -> Result<(), LiveError> {
@@ -791,24 +844,12 @@ fn stepper_stage(
         warmup: Vec::new(),
         sigma: Vec::new(),
         started: false,
-        buffer: TestData::default(),
-        buffer_open: buffer_samples > 0,
         out: StepOutput::new(base.connections.len()),
     };
     let mut ok = true;
     let send = |m: Msg<Stepped>| tx.send(m).is_ok();
     let step_one =
         |st: &mut StepperState, a: Aligned, late: bool| -> Result<Msg<Stepped>, LiveError> {
-            if st.buffer_open {
-                if st.buffer.len() < buffer_samples {
-                    st.buffer.samples.push(a.sample);
-                    st.buffer.t_ns.push(a.t_ns);
-                    st.buffer.excitation.push(a.excitation.clone());
-                    st.buffer.response.push(a.response.clone());
-                } else {
-                    st.buffer_open = false;
-                }
-            }
             let Some(est) = st.est.as_mut() else {
                 return Ok(Msg::Data(Stepped::Sample { a, out: None, late }));
             };
@@ -823,7 +864,7 @@ fn stepper_stage(
         };
     let build = |st: &mut StepperState| -> Result<(), LiveError> {
         if batch_only {
-            // No online estimator: the samples are only buffered for the batch refits.
+            // No online estimator: the parameters come from the windows alone.
             return Ok(());
         }
         let mut sigma: Vec<f64> = st
@@ -852,9 +893,9 @@ fn stepper_stage(
         Ok(())
     };
     if batch_only {
-        ok &= send(Msg::Data(Stepped::Warning(format!(
-            "accelerations only: no online residual force (the Kalman stage cannot determine the joint deformation from accelerations: a constant residual force and its static deflection give none); the parameters come from batch output-error identifications over the first {buffer_samples} buffered samples, every --refit-every samples while they fill and at the end"
-        ))));
+        ok &= send(Msg::Data(Stepped::Warning(
+            "accelerations only: no online residual force (the Kalman stage cannot determine the joint deformation from accelerations: a constant residual force and its static deflection give none); the parameters come from the identification of the session's windows".to_string(),
+        )));
     }
     let end = loop {
         let Ok(msg) = rx.recv() else {
@@ -879,16 +920,13 @@ fn stepper_stage(
                         base.dt_s
                     ))));
                 }
-                if batch_only {
-                    ok &= send(Msg::Data(Stepped::RateSetup(Box::new(st.setup.clone()))));
-                }
+                ok &= send(Msg::Data(Stepped::RateSetup(Box::new(st.setup.clone()))));
                 if !needs_noise {
                     build(&mut st)?;
                 }
             }
             LiveItem::Break { reason } => {
                 st.started = false;
-                st.buffer_open = false;
                 ok &= send(Msg::Data(Stepped::Warning(format!(
                     "{reason}; the estimator restarts at rest"
                 ))));
@@ -940,10 +978,6 @@ fn stepper_stage(
         }
     }
     if ok {
-        let _ = send(Msg::Data(Stepped::Buffered {
-            data: std::mem::take(&mut st.buffer),
-            setup: Box::new(st.setup.clone()),
-        }));
         let _ = send(end);
     }
     Ok(())
@@ -963,13 +997,16 @@ enum Refitted {
         t_ns: u64,
         params: Vec<LiveParameter>,
         is_final: bool,
-        /// "online" (the residual-force fit) or "batch" (a batch-only session's refit).
+        /// "online" (the residual-force fit) or "batch" (the windows' combination).
         kind: &'static str,
     },
+    /// The setup the session's windows use and the recording attaches (at the stream's
+    /// rate, with the window keys); sent before the first sample.
+    SessionSetup(Box<Setup>),
     Final {
-        /// Boxed: the identification is large and this message is sent once.
+        /// The last good window's identification carrying the combination of all (boxed:
+        /// it is large and sent once).
         identification: Option<Box<Identification>>,
-        samples: usize,
         setup: Box<Setup>,
     },
     Notice(String),
@@ -996,169 +1033,269 @@ fn solve_online(
     Ok(params)
 }
 
-/// How a batch-only session refits. Accelerometer-only layouts have no online fit: the
-/// residual-force (Kalman) estimator cannot determine their joint deformation (a constant
-/// residual force and its static deflection give no acceleration; ACCURACY.md "Accelerometers
-/// only, and mixed layouts"), so their parameters come from the batch identification
-/// (`identify`: the output-error stage from a stiffness scan) over the buffered first
-/// segment, run on a worker thread every `refit_every` new samples and once at the end. A
-/// run starts only when the previous one has finished, so on a fast stream the refits come
-/// as often as the batch allows (measured 0.3–0.8 s per 2,000 samples for a spring, tens of
-/// seconds with friction) and the stepper never waits for them.
-#[derive(Debug, Clone, Copy)]
-struct BatchRefits {
-    refit_every: usize,
-    buffer_samples: usize,
+/// Maps acquisition sample indices to session indices that only increase: a restarted
+/// acquisition counts from 0 again, so its run continues after a one-sample gap (a new
+/// segment for `replay` and for the windows). The sink (recording) and the refitter
+/// (windows) map the same samples the same way, so live's windows are the recording's.
+#[derive(Debug, Default, Clone)]
+struct SessionIndex {
+    offset: u64,
+    last: Option<u64>,
 }
 
-/// Fewest buffered samples a periodic batch refit runs on (the stiffness scan alone reads
-/// the first 200).
-const MIN_BATCH_SAMPLES: usize = 400;
+impl SessionIndex {
+    /// The session index of `sample`, and whether it starts a new run.
+    fn map(&mut self, sample: u64) -> (u64, bool) {
+        let mut s = sample.saturating_add(self.offset);
+        let mut restarted = false;
+        if let Some(last) = self.last
+            && s <= last
+        {
+            self.offset = last + 2 - sample;
+            s = last + 2;
+            restarted = true;
+        }
+        self.last = Some(s);
+        (s, restarted)
+    }
+}
 
-/// What a batch refit worker sends back: the last sample and its time stamp, the samples
-/// used, and the parameters or why there are none.
-type BatchOutcome = (u64, u64, usize, Result<Vec<LiveParameter>, String>);
+/// One window's identification, as the worker sends it back.
+struct WindowDone {
+    estimate: WindowEstimate,
+    identification: Result<Identification, String>,
+    /// Time stamp of the window's last sample, ns.
+    t_ns: u64,
+    seconds: f64,
+}
 
-struct BatchRefitter {
-    cfg: BatchRefits,
-    /// The setup at the stream's rate (the stepper sends it once the rate is known).
+/// The session's windows (module docs, "Windows"): collected here at stream rate,
+/// identified one after the other on a worker thread, combined as they come back.
+struct WindowRefitter {
+    /// The setup at the stream's rate with the window keys (what the recording attaches).
     setup: Setup,
-    data: TestData,
-    open: bool,
-    since: usize,
-    running: Option<Receiver<BatchOutcome>>,
-    last_error: Option<String>,
+    collector: WindowCollector,
+    /// Windows for the worker, with the session's first sample.
+    jobs: Option<Sender<(TestData, Option<u64>)>>,
+    done: Receiver<WindowDone>,
+    /// Set when the session stops: the worker takes no further window.
+    cancel: Arc<AtomicBool>,
+    pending: usize,
+    session: WindowedSession<String>,
+    skipped: usize,
+    index: SessionIndex,
+    /// Seconds the last window's identification took.
+    last_seconds: f64,
 }
 
-impl BatchRefitter {
-    fn new(cfg: BatchRefits, setup: &Setup) -> Self {
-        Self {
-            cfg,
-            setup: setup.clone(),
-            data: TestData::default(),
-            open: cfg.buffer_samples > 0,
-            since: 0,
-            running: None,
-            last_error: None,
-        }
-    }
-
-    /// Buffers a sample of the first contiguous segment and starts a refit when due.
-    fn push(&mut self, a: &Aligned) -> Option<Refitted> {
-        if a.excitation.is_empty() || !self.open {
-            return None;
-        }
-        let contiguous = self
-            .data
-            .samples
-            .last()
-            .is_none_or(|&l| a.sample == l.wrapping_add(1));
-        if !contiguous || self.data.len() >= self.cfg.buffer_samples {
-            self.open = false;
-            return None;
-        }
-        self.data.samples.push(a.sample);
-        self.data.t_ns.push(a.t_ns);
-        self.data.excitation.push(a.excitation.clone());
-        self.data.response.push(a.response.clone());
-        self.since += 1;
-        let due = self.cfg.refit_every > 0 && self.since >= self.cfg.refit_every;
-        if due && self.running.is_none() && self.data.len() >= MIN_BATCH_SAMPLES {
-            return self.spawn();
-        }
-        None
-    }
-
-    fn spawn(&mut self) -> Option<Refitted> {
-        let (tx, rx) = bounded::<BatchOutcome>(1);
-        let setup = self.setup.clone();
-        let data = self.data.clone();
-        let spawned = thread::Builder::new()
-            .name("live-batch-refit".into())
+impl WindowRefitter {
+    fn start(setup: Setup) -> Result<Self, String> {
+        let spec = setup
+            .window_spec()
+            .ok_or_else(|| "the session setup has no windows".to_string())?;
+        let (job_tx, job_rx) = bounded::<(TestData, Option<u64>)>(MAX_PENDING_WINDOWS);
+        let (done_tx, done_rx) = crossbeam_channel::unbounded::<WindowDone>();
+        let cancel = Arc::new(AtomicBool::new(false));
+        let worker_setup = setup.clone();
+        let worker_cancel = Arc::clone(&cancel);
+        // Not scoped: a session that is asked to stop does not wait for a window being
+        // identified (tens of seconds); the worker ends after it.
+        thread::Builder::new()
+            .name("live-windows".into())
             .spawn(move || {
-                let opts = IdentifyOptions::from_setup(&setup);
-                let params = identify(&setup, &data, &opts, None, &mut |_| {}, &mut |_, _| {})
-                    .map_err(|e| e.to_string())
-                    .and_then(|id| {
-                        batch_parameters(&setup, &id)
-                            .ok_or_else(|| "the identification has no parameters".to_string())
-                    });
-                let last = data.samples.last().copied().unwrap_or(0);
-                let t = data.t_ns.last().copied().unwrap_or(0);
-                let _ = tx.send((last, t, data.len(), params));
-            });
-        self.since = 0;
-        match spawned {
-            Ok(_) => {
-                self.running = Some(rx);
+                let opts = IdentifyOptions::from_setup(&worker_setup);
+                let truth = worker_setup.truth_params();
+                for (data, record_first) in job_rx {
+                    if worker_cancel.load(Ordering::Acquire) {
+                        break;
+                    }
+                    let t0 = Instant::now();
+                    let (estimate, id) = identify_window(
+                        &worker_setup,
+                        &data,
+                        &opts,
+                        truth.as_deref(),
+                        record_first,
+                        &mut |_| {},
+                    );
+                    let done = WindowDone {
+                        estimate,
+                        identification: id.map_err(|e| e.to_string()),
+                        t_ns: data.t_ns.last().copied().unwrap_or(0),
+                        seconds: t0.elapsed().as_secs_f64(),
+                    };
+                    if done_tx.send(done).is_err() {
+                        break;
+                    }
+                }
+            })
+            .map_err(|e| format!("no identification worker thread: {e}"))?;
+        Ok(Self {
+            setup,
+            collector: WindowCollector::new(spec),
+            jobs: Some(job_tx),
+            done: done_rx,
+            cancel,
+            pending: 0,
+            session: WindowedSession::new(spec),
+            skipped: 0,
+            index: SessionIndex::default(),
+            last_seconds: 0.0,
+        })
+    }
+
+    /// Takes one aligned sample; a completed window goes to the worker, or is skipped
+    /// (the warning returned) when [`MAX_PENDING_WINDOWS`] already wait.
+    fn push(&mut self, a: &Aligned) -> Option<String> {
+        let (s, _) = self.index.map(a.sample);
+        self.session.report.samples_seen += 1;
+        let w = self
+            .collector
+            .push(s, a.t_ns, a.excitation.clone(), a.response.clone())?;
+        let (first, last) = (w.samples.first().copied()?, w.samples.last().copied()?);
+        match self
+            .jobs
+            .as_ref()?
+            .try_send((w, self.collector.record_first()))
+        {
+            Ok(()) => {
+                self.pending += 1;
                 None
             }
-            Err(e) => Some(Refitted::Warning(format!(
-                "batch refit not started (no thread: {e})"
-            ))),
+            Err(_) => {
+                self.skipped += 1;
+                Some(format!(
+                    "window of samples {first}–{last} not identified: {MAX_PENDING_WINDOWS} windows wait for the identification worker (the last took {:.1} s; raise --window-every); `jointid replay` on the recording identifies it",
+                    self.last_seconds
+                ))
+            }
         }
     }
 
-    /// The finished refit's parameters (or a warning, once per distinct cause).
-    fn poll(&mut self) -> Option<Refitted> {
-        let rx = self.running.as_ref()?;
-        let outcome = match rx.try_recv() {
-            Ok(o) => o,
-            Err(crossbeam_channel::TryRecvError::Empty) => return None,
-            Err(crossbeam_channel::TryRecvError::Disconnected) => {
-                self.running = None;
-                return Some(Refitted::Warning(
-                    "batch refit worker ended without a result".into(),
-                ));
-            }
-        };
-        self.running = None;
-        let (sample, t_ns, n, params) = outcome;
-        match params {
-            Ok(params) => {
-                self.last_error = None;
-                Some(Refitted::Parameters {
-                    sample,
-                    t_ns,
+    /// Adds a finished window; returns the new combination (as published) and a warning
+    /// when the window gave no parameters.
+    fn absorb(&mut self, d: WindowDone) -> Vec<Refitted> {
+        self.pending = self.pending.saturating_sub(1);
+        self.last_seconds = d.seconds;
+        let mut out = Vec::new();
+        let (first, last) = (d.estimate.first_sample, d.estimate.last_sample);
+        if let Some(f) = &d.estimate.failure {
+            out.push(Refitted::Warning(format!(
+                "window of samples {first}–{last}: no parameters: {f}"
+            )));
+        }
+        self.session
+            .add(d.estimate, d.identification, TestData::default());
+        if let Some(c) = self.session.combined() {
+            let params: Vec<LiveParameter> = self
+                .setup
+                .param_keys()
+                .into_iter()
+                .zip(c.values.iter().zip(&c.std_errors))
+                .filter(|(_, (v, se))| v.is_finite() && se.is_finite())
+                .map(|(key, (&value, &std_error))| LiveParameter {
+                    key,
+                    value,
+                    std_error,
+                })
+                .collect();
+            if !params.is_empty() {
+                out.push(Refitted::Parameters {
+                    sample: last,
+                    t_ns: d.t_ns,
                     params,
                     is_final: false,
                     kind: "batch",
-                })
-            }
-            Err(e) if self.last_error.as_deref() == Some(&e) => None,
-            Err(e) => {
-                self.last_error = Some(e.clone());
-                Some(Refitted::Warning(format!(
-                    "batch refit over samples up to {sample} ({n} samples): {e}"
-                )))
+                });
             }
         }
+        out
     }
-}
 
-/// The final pass's parameters of a batch identification, as published.
-fn batch_parameters(setup: &Setup, id: &Identification) -> Option<Vec<LiveParameter>> {
-    let keys = setup.param_keys();
-    let ps = id.final_parameters()?;
-    Some(
-        ps.iter()
-            .zip(keys)
-            .map(|(p, key)| LiveParameter {
-                key,
-                value: p.value,
-                std_error: p.std_error,
-            })
-            .collect(),
-    )
+    /// The windows finished since the last call.
+    fn poll(&mut self) -> Vec<Refitted> {
+        let mut out = Vec::new();
+        while let Ok(d) = self.done.try_recv() {
+            out.extend(self.absorb(d));
+        }
+        out
+    }
+
+    /// Ends the session's windows. At the end of the stream: a session shorter than one
+    /// window is identified whole (as `replay` does), and every queued window is waited
+    /// for (`on_message` gets each combination as it comes). When stopped: nothing more is
+    /// identified and what was not is said. Returns the final identification (the last
+    /// good window's, carrying the combination of all; `Err` with why there is none).
+    fn finish(
+        mut self,
+        stopped: bool,
+        on_message: &mut dyn FnMut(Refitted),
+    ) -> Result<Identification, String> {
+        self.session.report.windows_abandoned = self.collector.abandoned;
+        if stopped {
+            self.cancel.store(true, Ordering::Release);
+            for m in self.poll() {
+                on_message(m);
+            }
+            let held = self.collector.held();
+            if self.pending > 0 || held > 0 {
+                on_message(Refitted::Warning(format!(
+                    "stopped before the end of the stream: {} queued window(s) and the {held} samples of an unfinished one were not identified, so that the session ends at once; `jointid replay` on the recording identifies them",
+                    self.pending
+                )));
+            }
+        } else {
+            if self.collector.completed == 0 {
+                let partial = self.collector.take_partial();
+                let first = self.collector.record_first();
+                if partial.len() >= 3 {
+                    on_message(Refitted::Notice(format!(
+                        "{} samples, fewer than one window of {}: identified whole",
+                        partial.len(),
+                        self.collector.spec().samples
+                    )));
+                    if let Some(jobs) = &self.jobs
+                        && jobs.send((partial, first)).is_ok()
+                    {
+                        self.pending += 1;
+                    }
+                }
+            }
+            // No further window: the worker ends after the queued ones.
+            self.jobs = None;
+            while self.pending > 0 {
+                let Ok(d) = self.done.recv() else {
+                    on_message(Refitted::Warning(
+                        "the window identification worker ended without a result".into(),
+                    ));
+                    break;
+                };
+                for m in self.absorb(d) {
+                    on_message(m);
+                }
+            }
+        }
+        if self.skipped > 0 {
+            on_message(Refitted::Warning(format!(
+                "{} window(s) skipped while the worker was behind: the final values combine fewer windows than `jointid replay` on the recording",
+                self.skipped
+            )));
+        }
+        match self.session.finish() {
+            Some((_, id)) => id,
+            None => Err("no window was identified".into()),
+        }
+    }
 }
 
 fn refitter_stage(
     rx: Receiver<Msg<Stepped>>,
     tx: Sender<Msg<Refitted>>,
     setup: &Setup,
-    refit_every: usize,
-    batch: Option<BatchRefits>,
+    opts_live: &LiveOptions,
+    batch_only: bool,
 ) {
+    let refit_every = opts_live.refit_every;
     let opts = IdentifyOptions::from_setup(setup);
     // The setup's `[estimator] forgetting` makes the published online fit track a changing
     // joint (memory 1/(1 − λ) samples, see `crate::track`); 1 pools the whole session.
@@ -1167,8 +1304,8 @@ fn refitter_stage(
     let mut last = (0u64, 0u64);
     let mut ok = true;
     let mut last_error: Option<String> = None;
-    let mut buffered: Option<(TestData, Box<Setup>)> = None;
-    let mut batch = batch.map(|b| BatchRefitter::new(b, setup));
+    let mut windows: Option<WindowRefitter> = None;
+    let mut session_setup: Option<Box<Setup>> = None;
     let send = |m: Msg<Refitted>| tx.send(m).is_ok();
     let end = loop {
         let Ok(msg) = rx.recv() else {
@@ -1176,8 +1313,10 @@ fn refitter_stage(
                 error: Some("the stepper stage ended without an end message".into()),
             };
         };
-        if let Some(m) = batch.as_mut().and_then(BatchRefitter::poll) {
-            ok &= send(Msg::Data(m));
+        if let Some(w) = windows.as_mut() {
+            for m in w.poll() {
+                ok &= send(Msg::Data(m));
+            }
         }
         let item = match msg {
             Msg::Data(item) => item,
@@ -1195,8 +1334,11 @@ fn refitter_stage(
                 if a.t_ns != 0 || !a.excitation.is_empty() {
                     last = (a.sample, a.t_ns);
                 }
-                if let Some(m) = batch.as_mut().and_then(|b| b.push(&a)) {
-                    ok &= send(Msg::Data(m));
+                if !a.excitation.is_empty()
+                    && let Some(w) = windows.as_mut()
+                    && let Some(warning) = w.push(&a)
+                {
+                    ok &= send(Msg::Data(Refitted::Warning(warning)));
                 }
                 ok &= send(Msg::Data(Refitted::Sample { a, out, late }));
                 if refit_every > 0 && since >= refit_every {
@@ -1224,11 +1366,34 @@ fn refitter_stage(
                     }
                 }
             }
-            Stepped::Buffered { data, setup } => buffered = Some((data, setup)),
             Stepped::RateSetup(s) => {
-                if let Some(b) = batch.as_mut() {
-                    b.setup = *s;
+                // Once per session: the windows' schedule and the recorded setup are fixed
+                // by the first rate.
+                if session_setup.is_some() {
+                    continue;
                 }
+                let session = match opts_live.window_spec(&s, s.dt_s) {
+                    Some(spec) => match s.with_windows(spec) {
+                        Ok(with) => with,
+                        Err(e) => {
+                            ok &= send(Msg::Data(Refitted::Warning(format!(
+                                "windows off: the setup with the window keys does not read back: {e}"
+                            ))));
+                            *s
+                        }
+                    },
+                    None => *s,
+                };
+                if session.window_spec().is_some() {
+                    match WindowRefitter::start(session.clone()) {
+                        Ok(w) => windows = Some(w),
+                        Err(e) => {
+                            ok &= send(Msg::Data(Refitted::Warning(format!("windows off: {e}"))))
+                        }
+                    }
+                }
+                ok &= send(Msg::Data(Refitted::SessionSetup(Box::new(session.clone()))));
+                session_setup = Some(Box::new(session));
             }
             Stepped::Notice(n) => ok &= send(Msg::Data(Refitted::Notice(n))),
             Stepped::Warning(w) => ok &= send(Msg::Data(Refitted::Warning(w))),
@@ -1237,69 +1402,46 @@ fn refitter_stage(
     if !ok {
         return;
     }
-    // Final refit: online, then the batch identification over the buffered segment.
-    let online = if batch.is_some() {
-        Err(None)
-    } else {
-        solve_online(&acc, setup, opts.max_condition).map_err(Some)
-    };
-    match online {
-        Ok(params) => {
-            let _ = send(Msg::Data(Refitted::Parameters {
-                sample: last.0,
-                t_ns: last.1,
-                params,
-                is_final: true,
-                kind: "online",
-            }));
-        }
-        Err(Some(e)) => {
-            let _ = send(Msg::Data(Refitted::Warning(format!(
-                "final online refit: {e}"
-            ))));
-        }
-        Err(None) => {}
-    }
-    // A signal (or a fatal fault) asks for the session to end now: the batch identification
-    // (about a minute over 20,000 samples) is left to `jointid replay` on the recording,
-    // which computes the same numbers, so shutdown takes the drain and the finalising only.
-    let stopped = matches!(end, Msg::Quit { .. });
-    let (identification, samples, setup_used) = match buffered {
-        Some((data, s)) if stopped => {
-            let _ = send(Msg::Data(Refitted::Warning(format!(
-                "stopped before the end of the stream: the final batch identification over the {} buffered samples was skipped so that the session ends at once; `jointid replay` on the recording computes it",
-                data.len()
-            ))));
-            (None, data.len(), s)
-        }
-        Some((data, s)) if data.len() >= 3 => {
-            let opts = IdentifyOptions::from_setup(&s);
-            let truth = s.truth_params();
-            match identify(
-                &s,
-                &data,
-                &opts,
-                truth.as_deref(),
-                &mut |_| {},
-                &mut |_, _| {},
-            ) {
-                Ok(id) => (Some(id), data.len(), s),
-                Err(e) => {
-                    let _ = send(Msg::Data(Refitted::Warning(format!(
-                        "final batch identification over {} samples failed: {e}",
-                        data.len()
-                    ))));
-                    (None, data.len(), s)
-                }
+    // Final refit: online (not in a batch-only session, which has none), then the windows.
+    if !batch_only {
+        match solve_online(&acc, setup, opts.max_condition) {
+            Ok(params) => {
+                let _ = send(Msg::Data(Refitted::Parameters {
+                    sample: last.0,
+                    t_ns: last.1,
+                    params,
+                    is_final: true,
+                    kind: "online",
+                }));
+            }
+            Err(e) => {
+                let _ = send(Msg::Data(Refitted::Warning(format!(
+                    "final online refit: {e}"
+                ))));
             }
         }
-        Some((data, s)) => (None, data.len(), s),
-        None => (None, 0, Box::new(setup.clone())),
-    };
+    }
+    // A signal (or a fatal fault) asks for the session to end now: the windows identified
+    // so far give the final values and the rest is left to `jointid replay` on the
+    // recording, so shutdown takes the drain and the finalising only.
+    let stopped = matches!(end, Msg::Quit { .. });
+    let identification = windows.map(|w| {
+        let mut forward = |m: Refitted| {
+            let _ = send(Msg::Data(m));
+        };
+        match w.finish(stopped, &mut forward) {
+            Ok(id) => Some(id),
+            Err(e) => {
+                let _ = send(Msg::Data(Refitted::Warning(format!(
+                    "final identification of the windows: {e}"
+                ))));
+                None
+            }
+        }
+    });
     let _ = send(Msg::Data(Refitted::Final {
-        identification: identification.map(Box::new),
-        samples,
-        setup: setup_used,
+        identification: identification.flatten().map(Box::new),
+        setup: session_setup.unwrap_or_else(|| Box::new(setup.clone())),
     }));
     let _ = send(end);
 }
@@ -1382,11 +1524,12 @@ struct Sink<'a> {
     first_t_ns: Option<u64>,
     last_progress: Instant,
     residual_values: Vec<f64>,
-    /// Recorded sample index = acquisition index + `record_offset`: a restarted acquisition
-    /// counts from 0 again, and the recording's indices must increase, so its run is
-    /// recorded after a one-sample gap (a new segment for `replay`), with a log message.
-    record_offset: u64,
-    last_recorded: Option<u64>,
+    /// Recorded sample index = the session index of the acquisition index
+    /// ([`SessionIndex`]): a restarted acquisition is recorded after a one-sample gap (a
+    /// new segment for `replay`), with a log message.
+    index: SessionIndex,
+    /// Whether the session setup is attached to the recording yet.
+    setup_attached: bool,
     names: Vec<String>,
     /// Names, units and truth of the parameters, for the recorded messages.
     labels: Vec<contract::ParameterLabel>,
@@ -1419,27 +1562,21 @@ impl Sink<'_> {
         self.report.last_sample = Some(a.sample);
         self.last_at = Some(Instant::now());
         let t = a.t_ns;
-        let mut s = a.sample + self.record_offset;
-        if self.recorder.is_some()
-            && let Some(last) = self.last_recorded
-            && s <= last
-        {
+        let (s, restarted) = self.index.map(a.sample);
+        let offset = s - a.sample;
+        if restarted && self.recorder.is_some() {
             // A new run of the acquisition (the aligner accepted the index going back).
-            self.record_offset = last + 2 - a.sample;
-            s = last + 2;
             let msg = LogMsg::new(
                 t,
                 LogLevel::Warning,
                 "jointid.live",
                 format!(
-                    "the acquisition restarted: its sample {} is recorded as sample {s} (a new segment after a one-sample gap; recorded index = acquisition index + {})",
-                    a.sample, self.record_offset
+                    "the acquisition restarted: its sample {} is recorded as sample {s} (a new segment after a one-sample gap; recorded index = acquisition index + {offset})",
+                    a.sample
                 ),
             );
             self.record(|w| contract::write(w, LOG_TOPIC, t, &msg));
         }
-        self.last_recorded = Some(s);
-        let offset = self.record_offset;
         self.record(|w| {
             w.write_excitation(&Frame {
                 sample: s,
@@ -1590,13 +1727,41 @@ impl Sink<'_> {
             parameters: contract::parameters_by_key(&self.labels, &params),
         };
         self.record(|w| contract::write(w, PARAMETERS_TOPIC, t_ns, &msg));
-        // The session's running estimate: the online fit, or in a batch-only session
-        // (accelerometers only) its periodic batch refits; the final batch identification
-        // is reported apart (`final_identification`).
-        if kind == "online" || (kind == "batch" && !is_final) {
-            self.report.refits += u64::from(!is_final);
-            self.report.online_parameters = params;
+        // The running estimates: the online fit and the windows' combination; the final
+        // identification is reported apart (`final_identification`).
+        if !is_final {
+            self.report.refits += 1;
         }
+        match kind {
+            "online" => self.report.online_parameters = params,
+            _ if !is_final => {
+                self.report.windows_identified += 1;
+                self.report.window_parameters = params;
+            }
+            _ => {}
+        }
+    }
+
+    /// Attaches the session setup (at the stream's rate, with the window keys) so that
+    /// `jointid replay` on the recording repeats the session's windows.
+    fn attach_setup(&mut self, setup: &Setup) {
+        if self.setup_attached || self.recorder.is_none() {
+            return;
+        }
+        self.setup_attached = true;
+        let facts = [
+            (
+                "generator".to_string(),
+                format!("jointid live {}", env!("CARGO_PKG_VERSION")),
+            ),
+            ("dt_s".to_string(), format!("{:e}", setup.dt_s)),
+        ]
+        .into_iter()
+        .collect();
+        self.record(|w| {
+            w.attach_setup(&setup.toml_text)?;
+            w.write_metadata(RECORDING_METADATA, &facts)
+        });
     }
 }
 
@@ -1605,7 +1770,7 @@ fn open_recorder(
     setup: &Setup,
 ) -> Result<RecordingWriter, crate::io::mcap::McapIoError> {
     let mut w = RecordingWriter::create(path, crate::io::FrameEncoding::Binary)?;
-    w.attach_setup(&setup.toml_text)?;
+    // The setup is attached once the stream's rate is known (`Sink::attach_setup`).
     if let Some(t) = setup.truth_params() {
         let m = setup
             .param_keys()
@@ -1615,16 +1780,6 @@ fn open_recorder(
             .collect();
         w.write_metadata(TRUTH_METADATA, &m)?;
     }
-    let facts = [
-        (
-            "generator".to_string(),
-            format!("jointid live {}", env!("CARGO_PKG_VERSION")),
-        ),
-        ("dt_s".to_string(), format!("{:e}", setup.dt_s)),
-    ]
-    .into_iter()
-    .collect();
-    w.write_metadata(RECORDING_METADATA, &facts)?;
     w.declare_inputs(&excitation_channels(setup), &response_channels(setup))?;
     Ok(w)
 }
@@ -1647,14 +1802,31 @@ pub fn run(
             "--rate {r}: must be a positive number of Hz"
         )));
     }
+    if let Some(w) = opts.window_samples
+        && w > 0
+        && w < crate::session::MIN_WINDOW_SAMPLES
+    {
+        return Err(LiveError::Options(format!(
+            "--window-samples {w}: at least {} (or 0 for none)",
+            crate::session::MIN_WINDOW_SAMPLES
+        )));
+    }
+    if let Some(e) = opts.window_every_s
+        && !(e.is_finite() && e > 0.0)
+    {
+        return Err(LiveError::Options(format!(
+            "--window-every {e}: must be a positive number of seconds"
+        )));
+    }
     // Fail early on an unusable setup (observability), before subscribing. An
-    // accelerometer-only layout runs batch-only (see `BatchRefits`) when samples are buffered.
+    // accelerometer-only layout runs batch-only (the windows alone) when windows are on.
+    let windows_on = opts.window_spec(setup, setup.dt_s).is_some();
     let batch_only = {
         let model = Model::for_identification(setup)?;
         match check_observability(setup, &model, &IdentifyOptions::from_setup(setup)) {
             Ok(()) => false,
             Err(crate::estimate::EstimateError::AccelerationOnly { .. })
-                if opts.buffer_samples > 0 && opts.estimator == EstimatorKind::Kalman =>
+                if windows_on && opts.estimator == EstimatorKind::Kalman =>
             {
                 true
             }
@@ -1760,7 +1932,6 @@ pub fn run(
                     st_tx,
                     setup,
                     opts.estimator,
-                    opts.buffer_samples,
                     opts.tune_warmup,
                     batch_only,
                 )
@@ -1769,11 +1940,7 @@ pub fn run(
         let refitter = thread::Builder::new()
             .name("live-refit".into())
             .spawn_scoped(scope, move || {
-                let batch = batch_only.then_some(BatchRefits {
-                    refit_every: opts.refit_every,
-                    buffer_samples: opts.buffer_samples,
-                });
-                refitter_stage(st_rx, rf_tx, setup, opts.refit_every, batch)
+                refitter_stage(st_rx, rf_tx, setup, opts, batch_only)
             })
             .map_err(|e| LiveError::Pipeline(e.to_string()))?;
 
@@ -1799,8 +1966,8 @@ pub fn run(
             first_t_ns: None,
             last_progress: Instant::now(),
             residual_values: Vec::new(),
-            record_offset: 0,
-            last_recorded: None,
+            index: SessionIndex::default(),
+            setup_attached: false,
             names: setup.connections.iter().map(|c| c.name.clone()).collect(),
             labels: contract::parameter_labels(setup),
             dt_s: setup.dt_s,
@@ -1822,9 +1989,12 @@ pub fn run(
                     is_final,
                     kind,
                 }) => sink.parameters(sample, t_ns, params, is_final, kind),
+                Msg::Data(Refitted::SessionSetup(s)) => {
+                    sink.attach_setup(&s);
+                    sink.dt_s = s.dt_s;
+                }
                 Msg::Data(Refitted::Final {
                     identification,
-                    samples,
                     setup,
                 }) => {
                     if let Some(id) = &identification
@@ -1842,12 +2012,11 @@ pub fn run(
                         sink.parameters(s, t, params, true, "batch");
                     }
                     sink.report.final_identification = identification.map(|b| *b);
-                    sink.report.final_samples = samples;
-                    sink.dt_s = setup.dt_s;
+                    sink.attach_setup(&setup);
                     final_setup = Some(setup);
                 }
                 Msg::Data(Refitted::Notice(n)) => {
-                    if n.starts_with("stream rate") {
+                    if n.starts_with("stream rate") || n.contains("identified whole") {
                         sink.report.warnings.push(n.clone());
                     }
                     if n.contains("publisher appeared") {
@@ -1936,20 +2105,27 @@ pub fn run(
 mod tests {
     use super::*;
 
-    /// Accelerometers only: the periodic batch refit runs on its worker while samples keep
-    /// coming, publishes the spring (continuous data, 32 sub-steps; 10 % noise; 1,500
-    /// samples) within 0.1 % with the truth inside ±3 standard errors, and refits only
-    /// after `refit_every` new samples; a gap closes the buffer.
+    /// The windows are identified on the worker while samples keep coming. Accelerometers
+    /// only (continuous data, 32 sub-steps; 10 % noise): the first window (1,000 samples)
+    /// publishes the spring within 0.1 % with the truth inside ±3 standard errors; a gap
+    /// abandons the window being collected, which starts again after it; the end waits for
+    /// the queued window and returns the last one's identification carrying the
+    /// combination of both, with the truth inside ±3 of its standard errors.
     #[test]
-    fn accelerometer_only_batch_refits_publish_the_spring() {
+    fn windows_are_identified_on_the_worker_and_combined() {
         use crate::simulate::{Noise, Scenario, SimulateOptions, simulate};
         let path = concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/recordings/two-beam-accel.toml"
         );
-        let text = std::fs::read_to_string(path).unwrap();
+        // Maximum likelihood: its windows after the first start in motion, which it
+        // estimates (the shipped setup's Kalman pipeline refuses them).
+        let text = std::fs::read_to_string(path)
+            .unwrap()
+            .replace("kind = \"kalman\"", "kind = \"ml\"");
         let setup = Setup::from_toml(&text, path).unwrap();
-        let n = 1500;
+        assert_eq!(setup.estimator.kind, Some(EstimatorKind::Ml));
+        let n = 2600;
         let sim = simulate(
             &setup,
             &SimulateOptions {
@@ -1962,13 +2138,8 @@ mod tests {
             },
         )
         .unwrap();
-        let mut b = BatchRefitter::new(
-            BatchRefits {
-                refit_every: 1000,
-                buffer_samples: 1200,
-            },
-            &setup,
-        );
+        let session = setup.with_windows(WindowSpec::new(1000, 1200)).unwrap();
+        let mut w = WindowRefitter::start(session).unwrap();
         let aligned = |i: usize| Aligned {
             sample: i as u64,
             t_ns: 100_000 * i as u64,
@@ -1976,58 +2147,72 @@ mod tests {
             response: sim.response[i].clone(),
         };
         for i in 0..999 {
-            assert!(b.push(&aligned(i)).is_none());
+            assert!(w.push(&aligned(i)).is_none());
         }
-        assert!(b.running.is_none(), "no refit before 1,000 samples");
-        assert!(b.push(&aligned(999)).is_none());
-        assert!(b.running.is_some(), "a refit runs at 1,000 samples");
-        // Samples keep coming while it runs; the buffer closes at 1,200.
-        for i in 1000..n {
-            let _ = b.push(&aligned(i));
+        assert_eq!(w.pending, 0, "no window before 1,000 samples");
+        assert!(w.push(&aligned(999)).is_none());
+        assert_eq!(w.pending, 1, "the first window goes to the worker");
+        // Samples keep coming while it runs; sample 1500 is lost: the second window
+        // (from 1200) is abandoned and starts again at 1501.
+        for i in (1000..n).filter(|&i| i != 1500) {
+            assert!(w.push(&aligned(i)).is_none());
         }
-        assert_eq!(b.data.len(), 1200);
+        assert_eq!(w.collector.abandoned, 1);
+        assert_eq!(w.collector.completed, 2);
         let t0 = Instant::now();
-        let got = loop {
-            if let Some(m) = b.poll() {
+        let first = loop {
+            if let Some(m) = w.poll().into_iter().next() {
                 break m;
             }
-            assert!(t0.elapsed() < Duration::from_secs(120), "no refit result");
+            assert!(t0.elapsed() < Duration::from_secs(120), "no window result");
             thread::sleep(Duration::from_millis(10));
         };
         let Refitted::Parameters {
             sample,
             params,
             is_final,
+            kind,
             ..
-        } = got
+        } = first
         else {
             panic!("expected parameters");
         };
-        assert_eq!(sample, 999);
-        assert!(!is_final);
+        assert_eq!((sample, is_final, kind), (999, false, "batch"));
         assert_eq!(params.len(), 1);
         assert_eq!(params[0].key, "joint6.u");
         let k = 3e5;
         let (v, se) = (params[0].value, params[0].std_error);
         assert!((v / k - 1.0).abs() < 1e-3, "spring {v} (se {se})");
         assert!((v - k).abs() <= 3.0 * se, "spring {v}, se {se}");
-        // The 200 samples after the refit started are not enough for another one.
-        assert!(b.running.is_none());
-        // A gap in the sample numbers closes the buffer (the batch needs contiguous samples).
-        let mut b = BatchRefitter::new(
-            BatchRefits {
-                refit_every: 1000,
-                buffer_samples: 1200,
-            },
-            &setup,
+        let mut messages = Vec::new();
+        let id = w.finish(false, &mut |m| messages.push(m)).unwrap();
+        let s = id.session.as_ref().unwrap();
+        assert_eq!(s.windows.len(), 2);
+        assert_eq!(
+            (s.windows[1].first_sample, s.windows[1].last_sample),
+            (1501, 2500)
         );
-        for i in 0..10 {
-            let _ = b.push(&aligned(i));
-        }
-        let _ = b.push(&aligned(11));
-        let _ = b.push(&aligned(12));
-        assert!(!b.open);
-        assert_eq!(b.data.len(), 10);
+        assert_eq!(s.windows_abandoned, 1);
+        let p = &id.final_parameters().unwrap()[0];
+        assert!(p.std_error < se, "two windows: {} vs {se}", p.std_error);
+        assert!((p.value - k).abs() <= 3.0 * p.std_error, "{p:?}");
+        assert!(
+            messages
+                .iter()
+                .any(|m| matches!(m, Refitted::Parameters { sample: 2500, .. }))
+        );
+    }
+
+    /// Session indices only increase: a restarted acquisition continues after a
+    /// one-sample gap, and later samples of that run follow on.
+    #[test]
+    fn session_index_continues_a_restarted_run_after_a_gap() {
+        let mut ix = SessionIndex::default();
+        assert_eq!(ix.map(10), (10, false));
+        assert_eq!(ix.map(11), (11, false));
+        assert_eq!(ix.map(0), (13, true));
+        assert_eq!(ix.map(1), (14, false));
+        assert_eq!(ix.map(5), (18, false));
     }
 
     fn fr(sample: u64, t_ns: u64, values: Vec<f64>) -> Frame {

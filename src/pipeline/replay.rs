@@ -200,52 +200,30 @@ fn identify_windows_stage(
     path: &Path,
     spec: crate::session::WindowSpec,
 ) -> Result<StageResult, AppError> {
-    use crate::session::{SessionReport, WindowCollector, identify_window, with_combination};
+    use crate::session::{WindowCollector, WindowedSession, identify_window};
     let mut collector = WindowCollector::new(spec);
-    let mut report = SessionReport::new(spec);
-    let mut bounds: Vec<Vec<Option<f64>>> = Vec::new();
-    let mut last: Option<(TestData, Result<Identification, IdentifyError>)> = None;
+    let mut session: WindowedSession<IdentifyError> = WindowedSession::new(spec);
     let mut input_warnings = Vec::new();
     let mut input_error: Option<String> = None;
     let mut fault: Option<AlignError> = None;
     let run = |data: TestData,
-               report: &mut SessionReport,
-               bounds: &mut Vec<Vec<Option<f64>>>,
-               last: &mut Option<(TestData, Result<Identification, IdentifyError>)>| {
+               record_first: Option<u64>,
+               session: &mut WindowedSession<IdentifyError>| {
         let _ = tx.send(Msg::Data(StageOut::Start {
             samples: data.len(),
             passes: opts.passes,
         }));
-        let (est, id) = identify_window(setup, &data, opts, truth, &mut |r| {
+        let (est, id) = identify_window(setup, &data, opts, truth, record_first, &mut |r| {
             let _ = tx.send(Msg::Data(StageOut::Pass(Box::new(r.clone()))));
         });
-        if est.failure.is_none()
-            && let Ok(i) = &id
-        {
-            bounds.push(
-                i.final_parameters()
-                    .map(|ps| ps.iter().map(|p| p.crlb).collect())
-                    .unwrap_or_default(),
-            );
-        }
-        // The output shows the last window that was identified (a failed window after
-        // good ones does not take their place); a failed one only when none was.
-        let good = est.failure.is_none();
-        report.windows.push(est);
-        if good
-            || last
-                .as_ref()
-                .is_none_or(|(_, l)| l.as_ref().map_or(true, |i| i.failure.is_some()))
-        {
-            *last = Some((data, id));
-        }
+        session.add(est, id, data);
     };
     loop {
         match rx.recv() {
             Ok(Msg::Data(AlignedItem::Sample(a))) => {
-                report.samples_seen += 1;
+                session.report.samples_seen += 1;
                 if let Some(w) = collector.push(a.sample, a.t_ns, a.excitation, a.response) {
-                    run(w, &mut report, &mut bounds, &mut last);
+                    run(w, collector.record_first(), &mut session);
                 }
             }
             Ok(Msg::Data(AlignedItem::Warning(w))) => input_warnings.push(w),
@@ -269,8 +247,8 @@ fn identify_windows_stage(
     if let Some(e) = fault {
         fault_ends_input(e, &mut input_error, &input_warnings, path);
     }
-    report.windows_abandoned = collector.abandoned;
-    if report.windows.is_empty() {
+    session.report.windows_abandoned = collector.abandoned;
+    if session.windows() == 0 {
         let partial = collector.take_partial();
         if partial.len() < 3 {
             return Err(AppError::TooLittleData {
@@ -285,15 +263,14 @@ fn identify_windows_stage(
             partial.len(),
             spec.samples
         ));
-        run(partial, &mut report, &mut bounds, &mut last);
+        run(partial, collector.record_first(), &mut session);
     }
     let _ = tx.send(Msg::Flush);
-    let Some((data, id)) = last else {
+    let Some((data, identification)) = session.finish() else {
         return Err(AppError::Pipeline {
             msg: "windowed identification ended without a window".into(),
         });
     };
-    let identification = id.map(|i| with_combination(i, report, &bounds));
     Ok(StageResult {
         data,
         input_warnings,
