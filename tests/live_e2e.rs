@@ -304,7 +304,7 @@ fn two_sessions_on_one_prefix_stay_apart_and_a_stalled_viewer_costs_no_input() {
     drop(viewer);
 }
 
-/// A recorded live session (`--record rec`, the default buffer for the final batch) fed by
+/// A recorded live session (`--record rec`, the default windows) fed by
 /// `acquire-sim` with `samples` samples; once `after` frames were seen published, each of
 /// `signals` (`-TERM`, `-KILL`) goes to `jointid live`, back to back. Returns both processes
 /// and when the signals were sent.
@@ -341,8 +341,8 @@ fn sigterm_drains_the_stages_and_finalises_the_recording() {
     let p = prefix("term");
     let dir = tempfile::tempdir().unwrap();
     let rec = dir.path().join("stopped.mcap");
-    // 3,000 samples and more are buffered for the final batch identification (about 7 s
-    // of work), which a signal leaves to `replay`: the session ends within 2 s.
+    // The first window (20,000 samples) is being collected: a signal leaves it to
+    // `replay` (about 12 s of work) and the session ends within 2 s.
     let (live, acq, sent) = recorded_session_signalled(&p, &rec, 100_000, 3000, &["-TERM"]);
     let out = finish(live, Duration::from_secs(30));
     let shutdown = sent.elapsed();
@@ -357,7 +357,7 @@ fn sigterm_drains_the_stages_and_finalises_the_recording() {
     assert!(
         r["warnings"]
             .to_string()
-            .contains("final batch identification over the"),
+            .contains("were not identified, so that the session ends at once"),
         "{}",
         r["warnings"]
     );

@@ -1726,7 +1726,11 @@ impl Sink<'_> {
             converged: None,
             parameters: contract::parameters_by_key(&self.labels, &params),
         };
-        self.record(|w| contract::write(w, PARAMETERS_TOPIC, t_ns, &msg));
+        // Logged at publication (wall clock): a window's parameters describe samples
+        // seconds older than the moment they became known, which is what a timeline of
+        // the session shows.
+        let published = unix_ns();
+        self.record(|w| contract::write(w, PARAMETERS_TOPIC, published, &msg));
         // The running estimates: the online fit and the windows' combination; the final
         // identification is reported apart (`final_identification`).
         if !is_final {
