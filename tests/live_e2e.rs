@@ -495,3 +495,69 @@ fn sigkill_loses_at_most_a_second_of_the_recording() {
         "a killed recording says it was cut"
     );
 }
+
+/// A session at a rate that is not the setup's (20 kHz against `dt_s` = 1e-4 s) in windows
+/// of 2,000 samples every 0.1 s: three windows are identified while the stream runs and
+/// published as their combination; the recording attaches the setup at the stream's rate
+/// with the window keys, so `jointid replay` on it (no other argument) repeats the windows
+/// and gives the same final parameters, to the last digit. The final spring is within 3 of
+/// its standard errors of the truth (the spring setup: 1 % noise, 8 data sub-steps).
+#[test]
+fn windows_at_a_rate_that_is_not_the_setup_s_replay_identically() {
+    let p = prefix("rate");
+    let setup = shipped_setup("two-beam-spring.toml");
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("session.mcap");
+    let live = spawn_live_with(
+        &setup,
+        &p,
+        &[
+            "--record",
+            rec.to_str().unwrap(),
+            "--window-samples",
+            "2000",
+            "--window-every",
+            "0.1",
+        ],
+    );
+    let acq = Command::new(common::live::ACQUIRE)
+        .arg("--setup")
+        .arg(&setup)
+        .args(["--prefix", &p, "--rate", "20000", "--samples", "6000"])
+        .args(["--seed", "5", "--substeps", "8", "--noise", "additive:0.01"])
+        .output()
+        .unwrap();
+    assert!(
+        acq.status.success(),
+        "{}",
+        String::from_utf8_lossy(&acq.stderr)
+    );
+    let r = report(&finish(live, Duration::from_secs(240)));
+    assert_eq!(r["samples"], 6000);
+    common::live::assert_no_input_faults(&r);
+    assert_eq!(r["rate_hz"].as_f64().unwrap(), 20_000.0);
+    let id = &r["final_identification"];
+    let windows = id["session"]["windows"].as_array().unwrap();
+    let starts: Vec<u64> = windows
+        .iter()
+        .map(|w| w["first_sample"].as_u64().unwrap())
+        .collect();
+    assert_eq!(starts, [0, 2000, 4000]);
+    assert!(r["windows_identified"].as_u64().unwrap() >= 1, "{r}");
+    let last = id["passes"].as_array().unwrap().last().unwrap();
+    let live_params = params_of(&last["parameters"]);
+    let spring = &last["parameters"][1];
+    let (v, se) = (
+        spring["value"].as_f64().unwrap(),
+        spring["std_error"].as_f64().unwrap(),
+    );
+    assert!((v - 3e5).abs() <= 3.0 * se, "spring {v} ± {se}");
+
+    let i = inspect_json(&rec);
+    let facts = i["facts"].to_string();
+    assert!(facts.contains("5e-5"), "{facts}");
+    let rv = replay_json(&rec);
+    assert_eq!(rv["samples"], 6000);
+    assert_eq!(rv["session"]["windows"].as_array().unwrap().len(), 3);
+    assert_eq!(params_of(&rv["parameters"]), live_params);
+}
