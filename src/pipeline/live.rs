@@ -5,8 +5,8 @@
 //! shm-sub-excitation ─┐                                                   ┌─► shm-pub-residuals
 //!                     ├─► source ─► aligner ─► stepper ─► refitter ─► sink ├─► shm-pub-parameters
 //! shm-sub-response ───┘   (merge,   (pairing,  (online    (Step V,    (MCAP ├─► shm-pub-diagnostics
-//!                          end,      faults,    estimator, refit       record,  └─► progress line
-//!                          Ctrl-C)   rate)      buffer)    every N)    latency)
+//!                          end,      faults,    estimator) refit,      record,  └─► progress line
+//!                          Ctrl-C)   rate)                 windows)    latency)
 //! ```
 //!
 //! # End of stream
@@ -16,8 +16,8 @@
 //! sent it, the source sends [`Msg::Flush`]: every stage finishes, the final refit runs,
 //! the recording is finalised and `live` exits 0. Other ends: `--samples N` (after N
 //! aligned samples), `--seconds S` (S seconds after the first frame), Ctrl-C or SIGTERM
-//! (a `Quit` without error: the same draining and finalising, without the final batch
-//! identification — see below), and `--idle-timeout`
+//! (a `Quit` without error: the same draining and finalising, without waiting for the
+//! windows not yet identified — see below), and `--idle-timeout`
 //! seconds with no publisher after one vanished without an end-of-stream frame (a killed
 //! acquisition program that is not restarted). A vanished publisher alone does not end
 //! the session: it is reported, and a restarted one is picked up.
