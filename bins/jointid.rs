@@ -571,7 +571,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
 }
 
 /// Runs a live session. The first SIGINT/SIGTERM/SIGQUIT sets the stop flag (the stages
-/// drain and finalise, the final batch identification is left to `replay`, so the session
+/// drain and finalise, windows not yet identified are left to `replay`, so the session
 /// ends within a second or two); a second one exits at once with status 130, leaving the
 /// recording's `.partial` file with every chunk written so far. `signal-hook` counts the
 /// signals: iceoryx2's node signal handling reports one request again and again, so it

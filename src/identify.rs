@@ -92,7 +92,7 @@ pub enum IdentifyError {
     },
     /// A window cut from a longer record: in motion whatever its first sample reads.
     #[error(
-        "the window starts mid-record (sample {sample}), in motion, and this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a `sign(u)` term; with accelerometers only a start in motion cannot even be seen in the data); identify the whole record, or windows with `--no-refine` (the Kalman passes estimate the initial state) or, for a law linear in the state, with `--estimator ml`"
+        "the window starts mid-record (sample {sample}), in motion, and this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a `sign(u)` term; with accelerometers only a start in motion cannot even be seen in the data); identify the whole record, or windows with `--no-refine` or `[estimator] output_error = false` (the Kalman passes estimate the initial state) or, for a law linear in the state, with `--estimator ml`"
     )]
     MidRecord { sample: u64 },
     #[error(
@@ -916,9 +916,12 @@ pub fn identify(
     let (sigma, estimated) = channel_noise(setup, data);
     let mut params = setup.initial_params();
     let mut motion_note = None;
-    let motion = match opts.starts_mid_record {
-        Some(sample) => Err(IdentifyError::MidRecord { sample }),
-        None => starts_at_rest(setup, data, &sigma),
+    // What the data show first (the channel and the figure); a window cut from a longer
+    // record is in motion even when its first sample cannot show it.
+    let motion = match (starts_at_rest(setup, data, &sigma), opts.starts_mid_record) {
+        (Err(e), _) => Err(e),
+        (Ok(()), Some(sample)) => Err(IdentifyError::MidRecord { sample }),
+        (Ok(()), None) => Ok(()),
     };
     if motion.is_ok()
         && !setup

@@ -97,6 +97,15 @@ impl WindowCollector {
         self.spec
     }
 
+    /// Whether [`WindowCollector::push`] would keep this sample's values (a caller that
+    /// must copy them can skip the copy otherwise and push empty ones).
+    pub fn keeps(&self, sample: u64) -> bool {
+        match self.current.samples.last() {
+            Some(&last) if sample == last.wrapping_add(1) => true,
+            _ => sample >= self.next_start.unwrap_or(sample),
+        }
+    }
+
     /// The record's first sample (`None` before it).
     pub fn record_first(&self) -> Option<u64> {
         self.record_first
@@ -406,7 +415,11 @@ mod tests {
     fn feed(c: &mut WindowCollector, samples: impl IntoIterator<Item = u64>) -> Vec<(u64, u64)> {
         let mut out = Vec::new();
         for s in samples {
-            if let Some(w) = c.push(s, s * 10, vec![s as f64], vec![0.0]) {
+            let keeps = c.keeps(s);
+            let w = c.push(s, s * 10, vec![s as f64], vec![0.0]);
+            let kept = w.is_some() || c.current.samples.last() == Some(&s);
+            assert_eq!(keeps, kept, "sample {s}");
+            if let Some(w) = w {
                 assert_eq!(w.len(), c.spec().samples);
                 assert!(w.samples.windows(2).all(|p| p[1] == p[0] + 1));
                 assert_eq!(w.excitation[0][0], w.samples[0] as f64);

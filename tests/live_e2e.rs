@@ -130,7 +130,8 @@ fn live_identifies_what_acquire_sim_publishes_and_the_recording_replays() {
     // Online refits every 500 samples were published (after the 1,000-sample warm-up).
     assert!(r["refits"].as_u64().unwrap() >= 2, "{}", r["refits"]);
 
-    // Final batch identification: the replay tolerances against the truth.
+    // Final identification (one window: the session is shorter than the default window,
+    // so it is identified whole at the end): the replay tolerances against the truth.
     let id = &r["final_identification"];
     let last = id["passes"].as_array().unwrap().last().unwrap();
     let live_params = params_of(&last["parameters"]);
@@ -157,7 +158,7 @@ fn killed_publisher_is_reported_and_a_restarted_one_picked_up() {
     let live = spawn_live(
         &p,
         &[
-            "--buffer-samples",
+            "--window-samples",
             "0",
             "--idle-timeout",
             "20",
@@ -220,7 +221,8 @@ fn killed_publisher_is_reported_and_a_restarted_one_picked_up() {
         logs.iter().any(|l| l.contains("the acquisition restarted")),
         "{logs:?}"
     );
-    // replay identifies the first segment, as live's final batch does, and says so.
+    // replay of the recording (its setup has live's windows) identifies what precedes the
+    // restart's gap and says so.
     let rv = replay_json_with(&rec, &["--estimator", "paper", "--passes", "1"]);
     assert_eq!(rv["samples"].as_u64(), Some(n - 2000), "{}", rv["samples"]);
     assert!(
@@ -234,8 +236,8 @@ fn killed_publisher_is_reported_and_a_restarted_one_picked_up() {
 fn two_sessions_on_one_prefix_stay_apart_and_a_stalled_viewer_costs_no_input() {
     use jointid::io::shm::{FrameSubscriber, ShmOptions};
     let p = prefix("two");
-    let live_a = spawn_live(&p, &["--session", "a", "--buffer-samples", "0"]);
-    let live_b = spawn_live(&p, &["--session", "b", "--buffer-samples", "0"]);
+    let live_a = spawn_live(&p, &["--session", "a", "--window-samples", "0"]);
+    let live_b = spawn_live(&p, &["--session", "b", "--window-samples", "0"]);
     // A viewer of session a's residuals that connects and never reads.
     let viewer_opts = ShmOptions {
         session: "a".into(),

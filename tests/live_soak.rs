@@ -24,7 +24,7 @@ fn soak_twenty_seconds_without_loss_or_memory_growth() {
     let prefix = prefix("soak");
     let live = spawn_live(
         &prefix,
-        &["--buffer-samples", "2000", "--refit-every", "20000"],
+        &["--window-samples", "2000", "--refit-every", "20000"],
     );
     let pid = live.id();
     let mut acq = acquire(&prefix, &["--seconds", "20"]).spawn().unwrap();

@@ -121,11 +121,11 @@ pub struct PredictedMsg {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum ParametersKind {
-    /// The result of one identification pass (replay; live's final batch).
+    /// The result of one identification pass (replay).
     Pass,
     /// The live online fit.
     Online,
-    /// A live periodic batch refit.
+    /// Live: the combination of the windows identified so far (final: of all).
     Batch,
 }
 

@@ -57,7 +57,7 @@
 //! replay`), and the combination of the windows identified so far (inverse variance, widened
 //! by the Birge ratio when they disagree) is published as `batch` parameters: the session's
 //! running answer, over the whole session, in bounded memory (one window being collected
-//! and at most [`MAX_PENDING_WINDOWS`] waiting). The recording's attached setup is the one
+//! and at most [`MAX_PENDING_WINDOWS`] waiting besides the one being identified). The recording's attached setup is the one
 //! at the stream's rate with the window keys (`[estimator] window_samples`, `window_every`),
 //! so `jointid replay session.mcap` identifies the same windows and prints the same final
 //! parameters. A session shorter than one window is identified whole at its end, as replay
@@ -153,7 +153,7 @@ pub struct LiveOptions {
     /// [`DEFAULT_WINDOW_SAMPLES`]; 0: no windows).
     pub window_samples: Option<usize>,
     /// Seconds of stream from one window's start to the next one's (`None`: the setup's
-    /// `window_every` when it sets windows, else [`DEFAULT_WINDOW_EVERY_S`]).
+    /// `window_every`, in samples, when it has one, else [`DEFAULT_WINDOW_EVERY_S`]).
     pub window_every_s: Option<f64>,
     /// Tune the Kalman filter (random walk, noise scale) by likelihood over the warm-up
     /// samples before stepping. Better online values (shipped test: spring −4 % instead of
@@ -190,9 +190,12 @@ impl LiveOptions {
             return None;
         }
         let seconds = |s: f64| (s / dt_s).round().max(1.0) as usize;
-        let every = match (self.window_every_s, from_setup) {
+        // The setup's `window_every` is in samples; without it (a setup that gives only
+        // `window_samples` means back-to-back windows for `replay`, which a live worker
+        // could not keep up with) the default stride in seconds.
+        let every = match (self.window_every_s, setup.estimator.window_every) {
             (Some(s), _) => seconds(s),
-            (None, Some(w)) => w.every,
+            (None, Some(every)) => every,
             (None, None) => seconds(DEFAULT_WINDOW_EVERY_S),
         };
         Some(WindowSpec::new(samples, every))
@@ -1000,6 +1003,8 @@ enum Refitted {
         /// "online" (the residual-force fit) or "batch" (the windows' combination).
         kind: &'static str,
     },
+    /// Windows identified so far (good or not).
+    WindowsIdentified(usize),
     /// The setup the session's windows use and the recording attaches (at the stream's
     /// rate, with the window keys); sent before the first sample.
     SessionSetup(Box<Setup>),
@@ -1088,6 +1093,14 @@ struct WindowRefitter {
     last_seconds: f64,
 }
 
+impl Drop for WindowRefitter {
+    /// A refitter dropped early (the session's downstream gone) stops its worker after the
+    /// window in hand.
+    fn drop(&mut self) {
+        self.cancel.store(true, Ordering::Release);
+    }
+}
+
 impl WindowRefitter {
     fn start(setup: Setup) -> Result<Self, String> {
         let spec = setup
@@ -1110,17 +1123,33 @@ impl WindowRefitter {
                         break;
                     }
                     let t0 = Instant::now();
-                    let (estimate, id) = identify_window(
-                        &worker_setup,
-                        &data,
-                        &opts,
-                        truth.as_deref(),
-                        record_first,
-                        &mut |_| {},
-                    );
+                    let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                        identify_window(
+                            &worker_setup,
+                            &data,
+                            &opts,
+                            truth.as_deref(),
+                            record_first,
+                            &mut |_| {},
+                        )
+                    }));
+                    // A panic is a failed window (and a bug to report), not a lost worker.
+                    let (estimate, identification) = match run {
+                        Ok((estimate, id)) => (estimate, id.map_err(|e| e.to_string())),
+                        Err(p) => {
+                            let why = panic_message("window identification", p);
+                            let estimate = WindowEstimate {
+                                first_sample: data.samples.first().copied().unwrap_or(0),
+                                last_sample: data.samples.last().copied().unwrap_or(0),
+                                parameters: Vec::new(),
+                                failure: Some(why.clone()),
+                            };
+                            (estimate, Err(why))
+                        }
+                    };
                     let done = WindowDone {
                         estimate,
-                        identification: id.map_err(|e| e.to_string()),
+                        identification,
                         t_ns: data.t_ns.last().copied().unwrap_or(0),
                         seconds: t0.elapsed().as_secs_f64(),
                     };
@@ -1149,9 +1178,13 @@ impl WindowRefitter {
     fn push(&mut self, a: &Aligned) -> Option<String> {
         let (s, _) = self.index.map(a.sample);
         self.session.report.samples_seen += 1;
-        let w = self
-            .collector
-            .push(s, a.t_ns, a.excitation.clone(), a.response.clone())?;
+        // Most samples fall between windows: copy only those the collector keeps.
+        let (e, r) = if self.collector.keeps(s) {
+            (a.excitation.clone(), a.response.clone())
+        } else {
+            (Vec::new(), Vec::new())
+        };
+        let w = self.collector.push(s, a.t_ns, e, r)?;
         let (first, last) = (w.samples.first().copied()?, w.samples.last().copied()?);
         match self
             .jobs
@@ -1162,12 +1195,19 @@ impl WindowRefitter {
                 self.pending += 1;
                 None
             }
-            Err(_) => {
+            Err(TrySendError::Full(_)) => {
                 self.skipped += 1;
-                Some(format!(
-                    "window of samples {first}–{last} not identified: {MAX_PENDING_WINDOWS} windows wait for the identification worker (the last took {:.1} s; raise --window-every); `jointid replay` on the recording identifies it",
+                // Said once; the count is in the final warning.
+                (self.skipped == 1).then(|| format!(
+                    "window of samples {first}–{last} not identified: {MAX_PENDING_WINDOWS} windows wait for the identification worker (the last took {:.1} s; raise --window-every); `jointid replay` on the recording identifies it (further skipped windows are counted at the end)",
                     self.last_seconds
                 ))
+            }
+            Err(TrySendError::Disconnected(_)) => {
+                self.skipped += 1;
+                (self.skipped == 1).then(|| {
+                    "the window identification worker has ended: no further window is identified".to_string()
+                })
             }
         }
     }
@@ -1186,20 +1226,24 @@ impl WindowRefitter {
         }
         self.session
             .add(d.estimate, d.identification, TestData::default());
-        if let Some(c) = self.session.combined() {
+        out.push(Refitted::WindowsIdentified(self.session.windows()));
+        // Published only when every parameter has a combination (the `parameters` frame is
+        // `[p₁..p_P, se₁..se_P]`, and the messages hold no NaN).
+        if let Some(c) = self.session.combined()
+            && c.values.iter().chain(&c.std_errors).all(|x| x.is_finite())
+        {
             let params: Vec<LiveParameter> = self
                 .setup
                 .param_keys()
                 .into_iter()
                 .zip(c.values.iter().zip(&c.std_errors))
-                .filter(|(_, (v, se))| v.is_finite() && se.is_finite())
                 .map(|(key, (&value, &std_error))| LiveParameter {
                     key,
                     value,
                     std_error,
                 })
                 .collect();
-            if !params.is_empty() {
+            {
                 out.push(Refitted::Parameters {
                     sample: last,
                     t_ns: d.t_ns,
@@ -1229,6 +1273,7 @@ impl WindowRefitter {
     fn finish(
         mut self,
         stopped: bool,
+        stop: &AtomicBool,
         on_message: &mut dyn FnMut(Refitted),
     ) -> Result<Identification, String> {
         self.session.report.windows_abandoned = self.collector.abandoned;
@@ -1263,15 +1308,29 @@ impl WindowRefitter {
             }
             // No further window: the worker ends after the queued ones.
             self.jobs = None;
+            // A signal while waiting (each window takes seconds) stops the wait.
             while self.pending > 0 {
-                let Ok(d) = self.done.recv() else {
-                    on_message(Refitted::Warning(
-                        "the window identification worker ended without a result".into(),
-                    ));
+                if stop.load(Ordering::Acquire) {
+                    self.cancel.store(true, Ordering::Release);
+                    on_message(Refitted::Warning(format!(
+                        "stopped while waiting for {} queued window(s): not identified, so that the session ends at once; `jointid replay` on the recording identifies them",
+                        self.pending
+                    )));
                     break;
-                };
-                for m in self.absorb(d) {
-                    on_message(m);
+                }
+                match self.done.recv_timeout(Duration::from_millis(100)) {
+                    Ok(d) => {
+                        for m in self.absorb(d) {
+                            on_message(m);
+                        }
+                    }
+                    Err(crossbeam_channel::RecvTimeoutError::Timeout) => {}
+                    Err(crossbeam_channel::RecvTimeoutError::Disconnected) => {
+                        on_message(Refitted::Warning(
+                            "the window identification worker ended without a result".into(),
+                        ));
+                        break;
+                    }
                 }
             }
         }
@@ -1281,7 +1340,8 @@ impl WindowRefitter {
                 self.skipped
             )));
         }
-        match self.session.finish() {
+        let spec = self.collector.spec();
+        match std::mem::replace(&mut self.session, WindowedSession::new(spec)).finish() {
             Some((_, id)) => id,
             None => Err("no window was identified".into()),
         }
@@ -1429,7 +1489,7 @@ fn refitter_stage(
         let mut forward = |m: Refitted| {
             let _ = send(Msg::Data(m));
         };
-        match w.finish(stopped, &mut forward) {
+        match w.finish(stopped, &opts_live.stop, &mut forward) {
             Ok(id) => Some(id),
             Err(e) => {
                 let _ = send(Msg::Data(Refitted::Warning(format!(
@@ -1738,10 +1798,7 @@ impl Sink<'_> {
         }
         match kind {
             "online" => self.report.online_parameters = params,
-            _ if !is_final => {
-                self.report.windows_identified += 1;
-                self.report.window_parameters = params;
-            }
+            _ if !is_final => self.report.window_parameters = params,
             _ => {}
         }
     }
@@ -1824,7 +1881,13 @@ pub fn run(
     }
     // Fail early on an unusable setup (observability), before subscribing. An
     // accelerometer-only layout runs batch-only (the windows alone) when windows are on.
-    let windows_on = opts.window_spec(setup, setup.dt_s).is_some();
+    let spec = opts.window_spec(setup, setup.dt_s);
+    if let Some(spec) = spec {
+        // The recording's setup carries the window keys: check now that they can be
+        // written into this setup's text, before subscribing.
+        setup.with_windows(spec)?;
+    }
+    let windows_on = spec.is_some();
     let batch_only = {
         let model = Model::for_identification(setup)?;
         match check_observability(setup, &model, &IdentifyOptions::from_setup(setup)) {
@@ -1977,7 +2040,6 @@ pub fn run(
             dt_s: setup.dt_s,
             progress,
         };
-        let mut final_setup: Option<Box<Setup>> = None;
         let end = loop {
             let Ok(msg) = rf_rx.recv() else {
                 break Msg::Quit {
@@ -1993,6 +2055,9 @@ pub fn run(
                     is_final,
                     kind,
                 }) => sink.parameters(sample, t_ns, params, is_final, kind),
+                Msg::Data(Refitted::WindowsIdentified(n)) => {
+                    sink.report.windows_identified = n as u64;
+                }
                 Msg::Data(Refitted::SessionSetup(s)) => {
                     sink.attach_setup(&s);
                     sink.dt_s = s.dt_s;
@@ -2017,7 +2082,6 @@ pub fn run(
                     }
                     sink.report.final_identification = identification.map(|b| *b);
                     sink.attach_setup(&setup);
-                    final_setup = Some(setup);
                 }
                 Msg::Data(Refitted::Notice(n)) => {
                     if n.starts_with("stream rate") || n.contains("identified whole") {
@@ -2077,7 +2141,6 @@ pub fn run(
                 sink.record_error.clone().unwrap_or_default()
             ));
         }
-        let _ = final_setup;
         (sink.progress)(&report);
         drop(sink);
         Ok::<LiveReport, LiveError>(report)
@@ -2189,7 +2252,9 @@ mod tests {
         assert!((v / k - 1.0).abs() < 1e-3, "spring {v} (se {se})");
         assert!((v - k).abs() <= 3.0 * se, "spring {v}, se {se}");
         let mut messages = Vec::new();
-        let id = w.finish(false, &mut |m| messages.push(m)).unwrap();
+        let id = w
+            .finish(false, &AtomicBool::new(false), &mut |m| messages.push(m))
+            .unwrap();
         let s = id.session.as_ref().unwrap();
         assert_eq!(s.windows.len(), 2);
         assert_eq!(

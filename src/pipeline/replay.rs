@@ -13,8 +13,8 @@
 //! `identify` over exactly the aligned data keeps the numbers identical (bit for bit) to
 //! the replay before the pipeline existed, which `tests/live_pipeline.rs` checks on the
 //! shipped recordings. The live path ([`super::live`]) streams its first pass through a
-//! filter-only estimator instead and uses the same buffered identification for its final
-//! refit.
+//! filter-only estimator instead and identifies its windows with the same code
+//! ([`crate::session`]).
 
 use std::path::{Path, PathBuf};
 use std::thread;
@@ -141,8 +141,8 @@ fn identify_stage(
     }
     if let Some(AlignError::Gap { prev, got }) = fault {
         // Lost frames or a restarted acquisition in a live recording: the time stepping
-        // cannot cross it, so the first segment is identified, as `jointid live`'s final
-        // batch identification does.
+        // cannot cross it, so the first segment is identified (a setup with windows, as
+        // `jointid live` attaches, lets gaps through instead: its windows restart after them).
         input_warnings.push(format!(
             "{}: the recording continues after a gap (sample {prev} is followed by {got}: frames lost, or the acquisition restarted); the first segment, samples {}–{prev} ({} samples), was identified and the rest was not",
             path.display(),
