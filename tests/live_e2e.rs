@@ -221,7 +221,7 @@ fn killed_publisher_is_reported_and_a_restarted_one_picked_up() {
         logs.iter().any(|l| l.contains("the acquisition restarted")),
         "{logs:?}"
     );
-    // replay of the recording (its setup has live's windows) identifies what precedes the
+    // replay of the recording (no windows in this session) identifies what precedes the
     // restart's gap and says so.
     let rv = replay_json_with(&rec, &["--estimator", "paper", "--passes", "1"]);
     assert_eq!(rv["samples"].as_u64(), Some(n - 2000), "{}", rv["samples"]);
