@@ -2054,7 +2054,15 @@ pub fn run(
                     params,
                     is_final,
                     kind,
-                }) => sink.parameters(sample, t_ns, params, is_final, kind),
+                }) => {
+                    sink.parameters(sample, t_ns, params, is_final, kind);
+                    // A window's result can come while no sample flows (the end of the
+                    // stream, waiting for queued windows): show it at once.
+                    if kind == "batch" {
+                        let r = sink.snapshot();
+                        (sink.progress)(&r);
+                    }
+                }
                 Msg::Data(Refitted::WindowsIdentified(n)) => {
                     sink.report.windows_identified = n as u64;
                 }
@@ -2228,8 +2236,16 @@ mod tests {
         assert_eq!(w.collector.completed, 2);
         let t0 = Instant::now();
         let first = loop {
-            if let Some(m) = w.poll().into_iter().next() {
-                break m;
+            let mut got = w.poll();
+            if let Some(i) = got
+                .iter()
+                .position(|m| matches!(m, Refitted::Parameters { .. }))
+            {
+                assert!(
+                    got.iter()
+                        .any(|m| matches!(m, Refitted::WindowsIdentified(1)))
+                );
+                break got.swap_remove(i);
             }
             assert!(t0.elapsed() < Duration::from_secs(120), "no window result");
             thread::sleep(Duration::from_millis(10));
