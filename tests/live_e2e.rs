@@ -522,13 +522,14 @@ fn windows_at_a_rate_that_is_not_the_setup_s_replay_identically() {
             "0.1",
         ],
     );
-    let acq = Command::new(common::live::ACQUIRE)
-        .arg("--setup")
-        .arg(&setup)
-        .args(["--prefix", &p, "--rate", "20000", "--samples", "6000"])
-        .args(["--seed", "5", "--substeps", "8", "--noise", "additive:0.01"])
-        .output()
-        .unwrap();
+    let acq = common::live::acquire_at(
+        &setup,
+        &p,
+        "20000",
+        &["--samples", "6000", "--seed", "5", "--substeps", "8"],
+    )
+    .output()
+    .unwrap();
     assert!(
         acq.status.success(),
         "{}",

@@ -54,10 +54,15 @@ pub fn acquire(prefix: &str, extra: &[&str]) -> Command {
 
 /// `acquire-sim --setup SETUP --prefix P --rate 10000 EXTRA…`, output captured.
 pub fn acquire_with(setup: &Path, prefix: &str, extra: &[&str]) -> Command {
+    acquire_at(setup, prefix, "10000", extra)
+}
+
+/// `acquire-sim --setup SETUP --prefix P --rate RATE EXTRA…` (Hz), output captured.
+pub fn acquire_at(setup: &Path, prefix: &str, rate_hz: &str, extra: &[&str]) -> Command {
     let mut c = Command::new(ACQUIRE);
     c.arg("--setup")
         .arg(setup)
-        .args(["--prefix", prefix, "--rate", "10000"])
+        .args(["--prefix", prefix, "--rate", rate_hz])
         .args(extra)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped());
