@@ -1404,16 +1404,24 @@ fn finish_with_output_error(
                         crate::estimate::output_error::PROBE_ROUNDS
                     ));
                 }
+                // A model that does not explain the outputs: the errors are those of a fit
+                // whose noise is what the residuals show (σ² estimated from them, the
+                // least-squares rule when σ is unknown), not the stated noise.
+                let widen = if r.report.cost_end > 2.0 {
+                    r.report.cost_end.sqrt()
+                } else {
+                    1.0
+                };
                 if r.report.cost_end > 2.0 {
                     result.notes.push(format!(
-                        "the model explains the outputs only to {:.1}× the noise variance (normalised output-error cost): unmodelled dynamics or too few [integrator] substeps; the standard errors do not include the bias this causes",
+                        "the model explains the outputs only to {:.1}× the noise variance (normalised output-error cost): unmodelled dynamics or too few [integrator] substeps; the standard errors are widened by its square root ({widen:.2}×, the noise level the residuals show) and still do not include the bias this causes",
                         r.report.cost_end
                     ));
                 }
                 if r.report.accepted {
                     for (j, p) in last.parameters.iter_mut().enumerate() {
                         p.value = r.values[j];
-                        p.std_error = r.std_errors[j];
+                        p.std_error = r.std_errors[j] * widen;
                         p.ci95 = [p.value - 1.96 * p.std_error, p.value + 1.96 * p.std_error];
                         p.crlb = Some(r.crlb[j]);
                     }
