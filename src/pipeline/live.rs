@@ -2467,4 +2467,39 @@ mod tests {
         assert_eq!(t.param_keys(), s.param_keys());
         assert_eq!(t.sensors.len(), s.sensors.len());
     }
+
+    /// The live windows: 20,000 samples every 20 s of stream by default; `--window-every`
+    /// in seconds at the stream's rate; the setup's `window_every` in samples; a setup that
+    /// gives only `window_samples` keeps the default stride in seconds (not back-to-back
+    /// windows, which no live worker keeps up with); 0 samples turns them off.
+    #[test]
+    fn live_window_schedule_follows_options_and_setup() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("recordings/two-beam-friction.toml");
+        let s = Setup::from_file(&path).unwrap();
+        let dt = 1.0 / 51200.0;
+        let mut o = LiveOptions::new(ShmOptions::default());
+        assert_eq!(
+            o.window_spec(&s, dt),
+            Some(WindowSpec::new(20_000, 1_024_000))
+        );
+        o.window_every_s = Some(0.5);
+        assert_eq!(o.window_spec(&s, dt), Some(WindowSpec::new(20_000, 25_600)));
+        o.window_every_s = Some(0.1); // shorter than a window: back to back
+        assert_eq!(o.window_spec(&s, dt), Some(WindowSpec::new(20_000, 20_000)));
+        let o = LiveOptions::new(ShmOptions::default());
+        let only = s.with_windows(WindowSpec::new(1000, 1000)).unwrap();
+        let text = only.toml_text.replace("window_every = 1000\n", "");
+        let only = Setup::from_toml(&text, "only window_samples").unwrap();
+        assert_eq!(only.estimator.window_every, None);
+        assert_eq!(
+            o.window_spec(&only, dt),
+            Some(WindowSpec::new(1000, 1_024_000))
+        );
+        let both = s.with_windows(WindowSpec::new(1000, 5000)).unwrap();
+        assert_eq!(o.window_spec(&both, dt), Some(WindowSpec::new(1000, 5000)));
+        let mut off = LiveOptions::new(ShmOptions::default());
+        off.window_samples = Some(0);
+        assert_eq!(off.window_spec(&both, dt), None);
+    }
 }
