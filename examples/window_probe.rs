@@ -60,6 +60,7 @@ fn main() -> anyhow::Result<()> {
         &opts,
         truth.as_deref(),
         record_first,
+        &[],
         &mut |p| {
             let v: Vec<String> = p
                 .parameters

@@ -258,12 +258,14 @@ pub fn identify_window(
     opts: &IdentifyOptions,
     truth: Option<&[f64]>,
     record_first: Option<u64>,
+    earlier: &[WindowEstimate],
     on_pass: &mut dyn FnMut(&crate::identify::PassReport),
 ) -> (WindowEstimate, Result<Identification, IdentifyError>) {
     let first = data.samples.first().copied();
     let id = if first.is_some() && first != record_first {
         let opts = IdentifyOptions {
             starts_mid_record: first,
+            prior: prior_of(earlier),
             ..opts.clone()
         };
         identify(setup, data, &opts, truth, on_pass, &mut |_, _| {})
@@ -287,6 +289,28 @@ pub fn identify_window(
         Err(e) => est.failure = Some(e.to_string()),
     }
     (est, id)
+}
+
+/// Where a window that starts mid-record begins its refinement: the combination of the
+/// windows identified before it, when every parameter has one (`IdentifyOptions::prior`
+/// says why). Both `jointid replay` and `jointid live` identify the windows in order on one
+/// thread, so both start each window from the same values and give the same answer.
+fn prior_of(earlier: &[WindowEstimate]) -> Option<crate::identify::Prior> {
+    let c = combine(earlier)?;
+    let good = earlier.iter().filter(|w| w.failure.is_none()).count();
+    let complete = c
+        .values
+        .iter()
+        .zip(&c.std_errors)
+        .all(|(v, e)| v.is_finite() && e.is_finite() && *e > 0.0);
+    complete.then(|| crate::identify::Prior {
+        values: c.values,
+        std_errors: c.std_errors,
+        source: format!(
+            "the combination of the {good} earlier window{} of the session",
+            if good == 1 { "" } else { "s" }
+        ),
+    })
 }
 
 /// The running state of a windowed identification, shared by `jointid replay` and
@@ -396,7 +420,8 @@ pub fn with_combination(
                 report.window_samples,
                 report.window_every,
                 report.windows.len(),
-                if worst > 1.0 {
+                // Widened whenever above 1; said when it shows at two decimals.
+                if worst >= 1.005 {
                     ": the windows disagree beyond their errors, which are widened by it"
                 } else {
                     ""

@@ -1118,6 +1118,9 @@ impl WindowRefitter {
             .spawn(move || {
                 let opts = IdentifyOptions::from_setup(&worker_setup);
                 let truth = worker_setup.truth_params();
+                // The windows done so far: a window starts from their combination, as in
+                // replay (`session::identify_window`).
+                let mut earlier: Vec<WindowEstimate> = Vec::new();
                 for (data, record_first) in job_rx {
                     if worker_cancel.load(Ordering::Acquire) {
                         break;
@@ -1130,6 +1133,7 @@ impl WindowRefitter {
                             &opts,
                             truth.as_deref(),
                             record_first,
+                            &earlier,
                             &mut |_| {},
                         )
                     }));
@@ -1147,6 +1151,7 @@ impl WindowRefitter {
                             (estimate, Err(why))
                         }
                     };
+                    earlier.push(estimate.clone());
                     let done = WindowDone {
                         estimate,
                         identification,

@@ -213,9 +213,11 @@ fn identify_windows_stage(
             samples: data.len(),
             passes: opts.passes,
         }));
-        let (est, id) = identify_window(setup, &data, opts, truth, record_first, &mut |r| {
-            let _ = tx.send(Msg::Data(StageOut::Pass(Box::new(r.clone()))));
-        });
+        let earlier = &session.report.windows;
+        let (est, id) =
+            identify_window(setup, &data, opts, truth, record_first, earlier, &mut |r| {
+                let _ = tx.send(Msg::Data(StageOut::Pass(Box::new(r.clone()))));
+            });
         session.add(est, id, data);
     };
     loop {
