@@ -1,8 +1,10 @@
 //! Identify one window of a recording and print everything the identification says (its
 //! notes, passes and failure): the diagnostic for a window that `jointid replay` or
 //! `jointid live` reports as failed, where only the last window's notes are shown.
-//! `cargo run --release --example window_probe -- RECORDING FIRST_SAMPLE [SAMPLES]`
-//! (SAMPLES defaults to the recording's window length, else 20,000).
+//! `cargo run --release --example window_probe -- RECORDING FIRST_SAMPLE [SAMPLES]
+//! [--prior V1,V2,…:SE1,SE2,…]` (SAMPLES defaults to the recording's window length, else
+//! 20,000; `--prior` starts the window from those values, as a session starts a window
+//! from the combination of the earlier ones).
 use std::path::Path;
 
 use anyhow::{Context, bail};
@@ -23,7 +25,7 @@ fn main() -> anyhow::Result<()> {
         .as_deref()
         .context("the recording has no attached setup")?;
     let setup = Setup::from_toml(toml, path)?;
-    let len: usize = match a.get(3) {
+    let len: usize = match a.get(3).filter(|s| !s.starts_with("--")) {
         Some(s) => s.parse().context("SAMPLES")?,
         None => setup.estimator.window_samples.unwrap_or(20_000),
     };
@@ -51,7 +53,21 @@ fn main() -> anyhow::Result<()> {
             .collect(),
     };
     let truth: Option<Vec<f64>> = setup.truth_params();
-    let opts = IdentifyOptions::from_setup(&setup);
+    let mut opts = IdentifyOptions::from_setup(&setup);
+    if let Some(i) = a.iter().position(|x| x == "--prior") {
+        let spec = a.get(i + 1).context("--prior V1,V2,…:SE1,SE2,…")?;
+        let (v, e) = spec.split_once(':').context("--prior V1,V2,…:SE1,SE2,…")?;
+        let list = |s: &str| -> anyhow::Result<Vec<f64>> {
+            s.split(',')
+                .map(|x| x.trim().parse::<f64>().context("--prior"))
+                .collect()
+        };
+        opts.prior = Some(jointid::identify::Prior {
+            values: list(v)?,
+            std_errors: list(e)?,
+            source: "--prior".into(),
+        });
+    }
     let record_first = rec.excitation.first().map(|f| f.sample);
     let t = std::time::Instant::now();
     let (est, id) = identify_window(

@@ -265,7 +265,7 @@ pub fn identify_window(
     let id = if first.is_some() && first != record_first {
         let opts = IdentifyOptions {
             starts_mid_record: first,
-            prior: prior_of(earlier),
+            prior: prior_of(earlier).or_else(|| opts.prior.clone()),
             ..opts.clone()
         };
         identify(setup, data, &opts, truth, on_pass, &mut |_, _| {})

@@ -159,7 +159,7 @@ fn gemv_by_columns(y: &mut DVector<f64>, a: &DMatrix<f64>, x: &DVector<f64>) {
     }
     for (column, &xj) in a.chunks_exact(rows.max(1)).zip(x.as_slice()).skip(1) {
         for (yi, ai) in y.iter_mut().zip(column) {
-            *yi = ai * xj + *yi;
+            *yi += ai * xj;
         }
     }
 }

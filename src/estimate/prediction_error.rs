@@ -441,6 +441,15 @@ fn sandwich(j: &Jac, m: usize) -> Option<(Vec<f64>, Vec<f64>, usize)> {
         .then_some((se, naive, lag))
 }
 
+/// Narrowest secant of a parameter relative to the start's standard error. Why: the widths
+/// follow the naive errors of the last Jacobian, and a friction level on its bound 0 in a
+/// window in motion collapsed them — a one-sided secant of a few newtons met the switching
+/// of `sign(u)`, gave a large column and a small error, the next secant was narrower, and
+/// after a few iterations a 1e-18 N step differenced round-off (`sign(u)` 0 ± 2.4e-17 N,
+/// shipped spring setup, live at 10 kHz, window 200,000); a column of round-off corrupts
+/// the other parameters' errors through the sandwich.
+const MIN_SECANT_OF_START: f64 = 1e-3;
+
 /// Levenberg–Marquardt on the innovation cost from `start` with the observer built at
 /// `start` (process-noise force `force_std` N per sample), at most `max_iter` Jacobians,
 /// then once more with the observer rebuilt at the result; standard errors by the sandwich.
@@ -471,6 +480,11 @@ pub fn refine(
             if s.is_finite() && s > 0.0 { s } else { 1e-6 }
         })
         .collect();
+    let start_errors = scales.clone();
+    // No secant narrower than 1e-3 of the start's error ([`MIN_SECANT_OF_START`]).
+    let floor: Vec<f64> = scales.iter().map(|s| MIN_SECANT_OF_START * s).collect();
+    let at_least =
+        |w: &[f64]| -> Vec<f64> { w.iter().zip(&floor).map(|(a, b)| a.max(*b)).collect() };
     let mut iterations = 0;
     let mut cost_start = None;
     let mut last: Option<(Jac, Predictor)> = None;
@@ -537,7 +551,7 @@ pub fn refine(
             p = trial;
             moved = true;
             if let Some((_, naive, _)) = sandwich(&J, m) {
-                scales = naive.iter().map(|x| x.max(1e-12)).collect();
+                scales = at_least(&naive);
             }
             J = jacobian(
                 setup, model, &basis, &p, &scales, &pred, excitation, response, substeps,
@@ -579,7 +593,15 @@ pub fn refine(
                 .collect::<Vec<_>>(),
         );
         let Ok(J2) = jacobian(
-            setup, model, &basis, &trial, &naive, &pred, excitation, response, substeps,
+            setup,
+            model,
+            &basis,
+            &trial,
+            &at_least(&naive),
+            &pred,
+            excitation,
+            response,
+            substeps,
         ) else {
             break;
         };
@@ -591,7 +613,7 @@ pub fn refine(
     // The errors from a secant as wide as the error itself (±1 naive error): a narrower one
     // sees single jumps of the rough cost and gave errors varying 10× between seeds.
     if let Some((_, naive, _)) = sandwich(&J, m) {
-        let wide: Vec<f64> = naive.iter().map(|x| x / SECANT).collect();
+        let wide: Vec<f64> = at_least(&naive).iter().map(|x| x / SECANT).collect();
         if let Ok(J2) = jacobian(
             setup, model, &basis, &p, &wide, &pred, excitation, response, substeps,
         ) {
@@ -602,6 +624,23 @@ pub fn refine(
         pred.project_out_initial_state(&mut J.cols);
     }
     let (se, naive, lag) = sandwich(&J, m).ok_or(SimulateError::Singular)?;
+    // Never below the information bound: a sandwich under it means the innovations came
+    // out smaller than the noise the filter assumes (a normalised cost under 1, as on
+    // continuous data), which the bound does not excuse — measured on 8-sub-step friction
+    // data, sandwich/naive 0.2–0.4 put the truth 2–2.5 sandwich errors off.
+    let mut std_errors: Vec<f64> = se.iter().zip(&naive).map(|(a, b)| a.max(*b)).collect();
+    // A friction level on its bound 0: the innovation cost is not continuous there (measured
+    // on a window in motion, shipped spring setup at 10 kHz: any level from 1e-6 to 10 N
+    // costs 11.6, i.e. 25 residual variances, more than 0 — the simulator's stick–slip
+    // switching exists for every positive level and not at 0), so neither a secant nor a
+    // likelihood-ratio distance measures how well the data bound it; the sandwich gave
+    // 2.4e-17 N, which then outweighed every other window's friction in the session's
+    // combination. Its error is kept at the start's: the data did not narrow it.
+    for j in 0..p.len() {
+        if is_sign(&basis[j]) && p[j] <= 0.0 {
+            std_errors[j] = std_errors[j].max(start_errors[j]);
+        }
+    }
     Ok(PemRefined {
         initial_state: pred.initial.clone(),
         report: PredictionErrorReport {
@@ -615,11 +654,7 @@ pub fn refine(
             sandwich_ratio: se.iter().zip(&naive).map(|(a, b)| a / b).collect(),
         },
         values: p,
-        // Never below the information bound: a sandwich under it means the innovations came
-        // out smaller than the noise the filter assumes (a normalised cost under 1, as on
-        // continuous data), which the bound does not excuse — measured on 8-sub-step friction
-        // data, sandwich/naive 0.2–0.4 put the truth 2–2.5 sandwich errors off.
-        std_errors: se.iter().zip(&naive).map(|(a, b)| a.max(*b)).collect(),
+        std_errors,
         naive,
     })
 }
