@@ -538,4 +538,24 @@ mod tests {
         assert_eq!(c.windows, vec![1, 0]);
         assert!(c.values[1].is_nan() && c.std_errors[1].is_nan());
     }
+    /// A window starts from the combination of the earlier good windows only when every
+    /// parameter has one; with no good window (or one parameter without an estimate) it
+    /// starts from its own residual-force estimate.
+    #[test]
+    fn a_window_starts_from_the_earlier_windows_combination() {
+        let mut failed = est(&[]);
+        failed.failure = Some("diverged".into());
+        assert!(prior_of(&[]).is_none());
+        assert!(prior_of(std::slice::from_ref(&failed)).is_none());
+        let p = prior_of(&[
+            est(&[(1.5, 1.0), (10.0, 2.0)]),
+            failed.clone(),
+            est(&[(2.5, 1.0), (10.0, 2.0)]),
+        ])
+        .unwrap();
+        assert_eq!(p.values, vec![2.0, 10.0]);
+        assert!((p.std_errors[0] - 0.5f64.sqrt()).abs() < 1e-12);
+        assert!(p.source.contains("2 earlier windows"), "{}", p.source);
+        assert!(prior_of(&[est(&[(1.0, 1.0), (2.0, f64::NAN)])]).is_none());
+    }
 }
