@@ -501,9 +501,9 @@ fn shipped_spring_setup_on_eight_substep_data() {
 
 /// Seed 45 of the shipped spring setup on 8-sub-step data (1 % noise) still falls back to
 /// the free-run output error, which explains the outputs only to ~17× the noise variance.
-/// Its standard errors are then widened by the square root of that cost (σ from the
-/// residuals): the spring, +1.07 % off, was 106.7 stated errors away; now under 30 (still
-/// biased: ACCURACY.md, "50-seed sweep"), and the note says by how much they were widened.
+/// Its standard errors (already the bound scaled by the residuals' level, √cost) are then
+/// widened by √cost once more: the spring, +1.07 % off, was 106.7 stated errors away; now
+/// under 30 (still biased: ACCURACY.md, "50-seed sweep"), and the note says by how much.
 #[test]
 fn output_error_that_does_not_fit_widens_its_errors() {
     let dir = tempfile::tempdir().unwrap();
@@ -523,7 +523,7 @@ fn output_error_that_does_not_fit_widens_its_errors() {
         .find(|n| n.starts_with("the model explains the outputs only"))
         .expect("the misfit note")
         .to_string();
-    assert!(note.contains("widened by its square root"), "{note}");
+    assert!(note.contains("widened by the cost"), "{note}");
     let p = &v["parameters"][1];
     let (value, se) = (
         p["value"].as_f64().unwrap(),
