@@ -629,13 +629,12 @@ pub fn refine(
     // continuous data), which the bound does not excuse — measured on 8-sub-step friction
     // data, sandwich/naive 0.2–0.4 put the truth 2–2.5 sandwich errors off.
     let mut std_errors: Vec<f64> = se.iter().zip(&naive).map(|(a, b)| a.max(*b)).collect();
-    // A friction level on its bound 0: the innovation cost is not continuous there (measured
-    // on a window in motion, shipped spring setup at 10 kHz: any level from 1e-6 to 10 N
-    // costs 11.6, i.e. 25 residual variances, more than 0 — the simulator's stick–slip
-    // switching exists for every positive level and not at 0), so neither a secant nor a
-    // likelihood-ratio distance measures how well the data bound it; the sandwich gave
-    // 2.4e-17 N, which then outweighed every other window's friction in the session's
-    // combination. Its error is kept at the start's: the data did not narrow it.
+    // A friction level on its bound 0: the estimate is one-sided and the sandwich's
+    // curvature is not its error (a boundary estimate is not normal). Its error is kept at
+    // the start's: the data pushed it to the bound without narrowing it. Measured before the
+    // observer's stuck-joint rule was removed (`simulate::predictions_with_observer`), when
+    // the cost jumped at any positive level: the sandwich gave 2.4e-17 N, which outweighed
+    // every other window's friction in a live session's combination.
     for j in 0..p.len() {
         if is_sign(&basis[j]) && p[j] <= 0.0 {
             std_errors[j] = std_errors[j].max(start_errors[j]);
