@@ -139,31 +139,6 @@ pub struct Simulated {
     pub noise_std: Vec<f64>,
 }
 
-/// `y = A x`, summed column by column in the order of nalgebra's `gemv(1.0, A, x, 0.0)` (so
-/// the same bits: the noise-free exactness tests of chaotic friction laws see a last-bit
-/// change) but over contiguous column slices the compiler vectorises. nalgebra's dynamic
-/// `gemv` walks each column element by element through its strides; in the simulation
-/// sub-step, which runs tens of millions of times per identification, that was half the
-/// time (`perf`, 2026-11-26).
-#[inline]
-fn gemv_by_columns(y: &mut DVector<f64>, a: &DMatrix<f64>, x: &DVector<f64>) {
-    let (rows, cols) = a.shape();
-    debug_assert!(y.len() == rows && x.len() == cols);
-    let (y, a) = (y.as_mut_slice(), a.as_slice());
-    let Some(&x0) = x.as_slice().first() else {
-        y.fill(0.0);
-        return;
-    };
-    for (yi, ai) in y.iter_mut().zip(&a[..rows]) {
-        *yi = ai * x0;
-    }
-    for (column, &xj) in a.chunks_exact(rows.max(1)).zip(x.as_slice()).skip(1) {
-        for (yi, ai) in y.iter_mut().zip(column) {
-            *yi += ai * xj;
-        }
-    }
-}
-
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Status {
     Free,
@@ -218,7 +193,7 @@ impl Work {
     /// δ, δ̇, δ̈ at the connections with the forces `f`: `d₀ − (G f) βh²`, `v₀ − (G f) γh`,
     /// `a₀ − G f` (the product formed first, as the allocating version did).
     fn deformations(&mut self, G: &DMatrix<f64>, bh2: f64, gh: f64) {
-        gemv_by_columns(&mut self.gf, G, &self.f);
+        self.gf.gemv(1.0, G, &self.f, 0.0);
         for c in 0..self.gf.len() {
             self.d[c] = self.d0[c] - self.gf[c] * bh2;
             self.dv[c] = self.v0[c] - self.gf[c] * gh;
@@ -546,12 +521,12 @@ impl TruthSystem {
         // is formed on its own and then subtracted, in the order the allocating version
         // used, so the results are the same to the last bit (the noise-free exactness tests
         // of chaotic friction laws see a last-bit change).
-        gemv_by_columns(&mut w.rhs, &m.Lp, p);
-        gemv_by_columns(&mut w.cv, &m.C, &w.vt);
+        w.rhs.gemv(1.0, &m.Lp, p, 0.0);
+        w.cv.gemv(1.0, &m.C, &w.vt, 0.0);
         w.rhs -= &w.cv;
-        gemv_by_columns(&mut w.cv, &m.K, &w.ut);
+        w.cv.gemv(1.0, &m.K, &w.ut, 0.0);
         w.rhs -= &w.cv;
-        gemv_by_columns(&mut w.a0, &self.meff_inv, &w.rhs);
+        w.a0.gemv(1.0, &self.meff_inv, &w.rhs, 0.0);
         // Free connection deformation, rate and acceleration. (`gemv_tr` sums by dot
         // products; an `Lc` column has one or two non-zeros, so the order cannot change a
         // bit.)
@@ -566,7 +541,7 @@ impl TruthSystem {
         let w = &mut self.work;
         // a = a₀ − (Y f): the product first, as the allocating version did (with two or more
         // connections the sum order matters to the last bit).
-        gemv_by_columns(&mut w.tmp, &self.Y, &w.f);
+        w.tmp.gemv(1.0, &self.Y, &w.f, 0.0);
         s.a.copy_from(&w.a0);
         s.a -= &w.tmp;
         s.u.copy_from(&w.ut);

@@ -486,12 +486,15 @@ fn shipped_friction_setup_on_eight_substep_data() {
 /// — and that is kept because the residual-force estimate had not found friction. Seeds 4
 /// and 5 were refused there and fell back to the free-run output error: spring +1.08 %
 /// (96 se) and +1.03 % (8 se). Now every parameter is within 3 standard errors and the
-/// spring within 0.1 %.
+/// spring within 0.1 %. Seed 45 was refused there too until the observer stopped removing
+/// its correction along a stuck joint (the innovation cost then jumped between friction 0
+/// and any positive level, so the bound looked determined): spring +1.07 %, 26 se after the
+/// misfit widening; now within 0.1 se.
 #[test]
 fn shipped_spring_setup_on_eight_substep_data() {
     let dir = tempfile::tempdir().unwrap();
     let setup = repo("recordings/two-beam-spring.toml");
-    for seed in ["4", "5"] {
+    for seed in ["4", "5", "45"] {
         let extra = ["--steps", "2000", "--substeps", "8"];
         let v = simulate_and_replay_within(dir.path(), &setup, seed, &extra, 3.0);
         let spring = v["parameters"][1]["value"].as_f64().unwrap();
