@@ -130,7 +130,10 @@ const PEM_FRICTION_FLOOR: f64 = 1.0 / 3.0;
 /// Why a prediction-error result does not determine the parameters, if it does not: a
 /// friction level that ended on its bound 0 although the residual-force estimate it started
 /// from (`start`, standard errors `start_se`) had found it more than 2 of its standard
-/// errors above 0, or any standard error that is zero or not finite.
+/// errors above 0 and no likelihood ratio against that level could be computed
+/// (`PemRefined::bound_likelihood_ratio`: with it, the result stands — a flat innovation cost
+/// has widened the intervals to reach the start's level, a rising one determines the bound),
+/// or any standard error that is zero or not finite.
 ///
 /// `in_motion`: the record starts in motion and its start is this record's own residual-force
 /// estimate; then a friction on its bound is refused whatever the start said (below). A
@@ -169,7 +172,8 @@ pub(super) fn pem_undetermined(
                 keys[j], r.report.force_std
             ));
         }
-        if friction && *v <= 0.0 && s0 > 2.0 * e0 {
+        let likelihood_ratio = r.bound_likelihood_ratio.get(j).copied().flatten();
+        if friction && *v <= 0.0 && s0 > 2.0 * e0 && likelihood_ratio.is_none() {
             return Some(format!(
                 "`{}` ended on its bound 0 (observer process-noise force {:.3e} N per sample) although its start (the residual-force estimate, or the session's answer so far for a window) was {s0:.4e} ± {e0:.3e}: the observer absorbed the friction and the innovations do not determine it",
                 keys[j], r.report.force_std
@@ -304,6 +308,7 @@ mod tests {
     fn pem(values: Vec<f64>, std_errors: Vec<f64>) -> PemRefined {
         PemRefined {
             initial_state: None,
+            bound_likelihood_ratio: vec![None; values.len()],
             naive: std_errors.clone(),
             values,
             std_errors,
@@ -345,6 +350,14 @@ mod tests {
         // The passes had found the friction (10 se above 0): the observer absorbed it.
         let why = pem_undetermined(&setup, &at_bound, &start, &start_se, false).unwrap();
         assert!(why.contains("bound 0"), "{why}");
+        // …unless the likelihood ratio against the start's level was measured: whether the
+        // innovations reject that level (the bound is determined) or fit it as well (the
+        // intervals were widened to reach it), the result stands.
+        for lr in [0.3, 25.0] {
+            let mut tested = at_bound.clone();
+            tested.bound_likelihood_ratio[f] = Some(lr);
+            assert!(pem_undetermined(&setup, &tested, &start, &start_se, false).is_none());
+        }
         // The passes had found none (1 se above 0, or below 0): the bound is the answer.
         let mut weak = start.clone();
         weak[f] = 0.1;
