@@ -4,6 +4,7 @@
 //! ```text
 //! cargo run --release --example sweep -- SETUP [--estimator ml|kalman|paper] [--seeds 50]
 //!     [--substeps 1,8,64] [--noise 0.01,0.1] [--steps 2000] [--skip 0] [--rms 2e4] [--verbose]
+//!     [--from 1] [--true-sigma]
 //! ```
 //! The excitation is `jointid simulate`'s random input with RMS `--rms` N (default 2e4, the
 //! command's default: what a user who follows the README gets; a law linear in the state
@@ -31,6 +32,7 @@ fn main() -> anyhow::Result<()> {
         .parse()
         .map_err(anyhow::Error::msg)?;
     let seeds: u64 = get("--seeds", "50").parse()?;
+    let from: u64 = get("--from", "1").parse()?;
     let steps: usize = get("--steps", "2000").parse()?;
     let skip: usize = get("--skip", "0").parse()?;
     let rms: f64 = get("--rms", "2e4").parse()?;
@@ -57,7 +59,7 @@ fn main() -> anyhow::Result<()> {
             let mut worst: f64 = 0.0;
             let mut time = 0.0;
             let mut fails = Vec::new();
-            for seed in 1..=seeds {
+            for seed in from..from + seeds {
                 let sim = simulate(
                     &setup,
                     &SimulateOptions {
@@ -82,11 +84,24 @@ fn main() -> anyhow::Result<()> {
                     excitation: sim.excitation[skip..].to_vec(),
                     response: sim.response[skip..].to_vec(),
                 };
-                let mut opts = IdentifyOptions::from_setup(&setup);
+                // `--true-sigma`: the sensors' noise levels given (the simulation's), not
+                // estimated from the data.
+                let given;
+                let setup = if a.iter().any(|x| x == "--true-sigma") {
+                    let mut g = setup.clone();
+                    for (sensor, sd) in g.sensors.iter_mut().zip(&sim.noise_std) {
+                        sensor.noise_std = Some(*sd);
+                    }
+                    given = g;
+                    &given
+                } else {
+                    &setup
+                };
+                let mut opts = IdentifyOptions::from_setup(setup);
                 opts.estimator = kind;
                 let t = std::time::Instant::now();
                 let r = identify(
-                    &setup,
+                    setup,
                     &data,
                     &opts,
                     Some(&sim.truth),
@@ -99,6 +114,11 @@ fn main() -> anyhow::Result<()> {
                     // failure even when it shows the passes' parameters.
                     Ok(id) if id.failure.is_some() => {
                         failed += 1;
+                        if a.iter().any(|x| x == "--verbose") {
+                            for n in id.notes.iter().filter(|n| n.contains("not used")) {
+                                println!("  seed {seed} failed: {n}");
+                            }
+                        }
                         fails.push(format!("seed {seed}: {}", id.failure.unwrap_or_default()));
                     }
                     Ok(id) => match id.final_parameters() {
