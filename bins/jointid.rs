@@ -224,7 +224,7 @@ enum Command {
         #[arg(long, default_value_t = 10.0)]
         idle_timeout: f64,
         /// Samples per identification window (default: the setup's `window_samples`, else
-        /// 20,000; 0: no windows, the online fit alone). Each window is identified on a
+        /// 10,000; 0: no windows, the online fit alone). Each window is identified on a
         /// worker thread while the test runs; their combination is the session's answer.
         #[arg(long, alias = "buffer-samples")]
         window_samples: Option<usize>,

@@ -343,8 +343,8 @@ fn sigterm_drains_the_stages_and_finalises_the_recording() {
     let p = prefix("term");
     let dir = tempfile::tempdir().unwrap();
     let rec = dir.path().join("stopped.mcap");
-    // The first window (20,000 samples) is being collected: a signal leaves it to
-    // `replay` (about 12 s of work) and the session ends within 2 s.
+    // The first window (10,000 samples) is being collected: a signal leaves it to
+    // `replay` (about 5 s of work) and the session ends within 2 s.
     let (live, acq, sent) = recorded_session_signalled(&p, &rec, 100_000, 3000, &["-TERM"]);
     let out = finish(live, Duration::from_secs(30));
     let shutdown = sent.elapsed();

@@ -167,9 +167,13 @@ pub struct LiveOptions {
     pub progress_interval: Duration,
 }
 
-/// Default samples per window of a live session: about 10–20 s of identification on two
-/// cores for the shipped two-beam setups (BENCHMARKS.md).
-pub const DEFAULT_WINDOW_SAMPLES: usize = 20_000;
+/// Default samples per window of a live session. Why 10,000 (was 20,000 until
+/// 2026-11-26): a window is identified in 3–6 s on two cores shared with the stepper, so
+/// the first answer is published within 10 s of the start at 10 and 51.2 kHz (measured
+/// 3.7–6.5 s; 7–15 s with 20,000). The price is precision: at 51.2 kHz, 60 s, three windows
+/// combined gave friction ± 464 N and the spring ± 1,630 N/m against ± 217 and ± 838 with
+/// 20,000 (docs/LIVE.md); `--window-samples 20000` buys that back.
+pub const DEFAULT_WINDOW_SAMPLES: usize = 10_000;
 /// Default stride of a live session's windows, seconds of stream: the worker identifies a
 /// default window in less than this, so it keeps up at any rate.
 pub const DEFAULT_WINDOW_EVERY_S: f64 = 20.0;
@@ -2473,7 +2477,7 @@ mod tests {
         assert_eq!(t.sensors.len(), s.sensors.len());
     }
 
-    /// The live windows: 20,000 samples every 20 s of stream by default; `--window-every`
+    /// The live windows: 10,000 samples every 20 s of stream by default; `--window-every`
     /// in seconds at the stream's rate; the setup's `window_every` in samples; a setup that
     /// gives only `window_samples` keeps the default stride in seconds (not back-to-back
     /// windows, which no live worker keeps up with); 0 samples turns them off.
@@ -2486,12 +2490,12 @@ mod tests {
         let mut o = LiveOptions::new(ShmOptions::default());
         assert_eq!(
             o.window_spec(&s, dt),
-            Some(WindowSpec::new(20_000, 1_024_000))
+            Some(WindowSpec::new(10_000, 1_024_000))
         );
         o.window_every_s = Some(0.5);
-        assert_eq!(o.window_spec(&s, dt), Some(WindowSpec::new(20_000, 25_600)));
+        assert_eq!(o.window_spec(&s, dt), Some(WindowSpec::new(10_000, 25_600)));
         o.window_every_s = Some(0.1); // shorter than a window: back to back
-        assert_eq!(o.window_spec(&s, dt), Some(WindowSpec::new(20_000, 20_000)));
+        assert_eq!(o.window_spec(&s, dt), Some(WindowSpec::new(10_000, 10_000)));
         let o = LiveOptions::new(ShmOptions::default());
         let only = s.with_windows(WindowSpec::new(1000, 1000)).unwrap();
         let text = only.toml_text.replace("window_every = 1000\n", "");
