@@ -551,6 +551,37 @@ impl ResidualEstimator for KalmanEstimator {
         &self.diag
     }
 
+    fn current_state(&self) -> Option<Vec<f64>> {
+        let mut x = Vec::with_capacity(3 * self.n);
+        x.extend(self.state.u.iter());
+        x.extend(self.state.v.iter());
+        x.extend(self.state.a.iter());
+        Some(x)
+    }
+
+    fn continue_from(&mut self, x: &[f64], force: &[f64], excitation: &[f64]) -> bool {
+        let (n, q) = (self.n, self.q);
+        if x.len() != 3 * n || force.len() != q || excitation.len() != self.p_prev.len() {
+            return false;
+        }
+        self.start(0, excitation);
+        self.state.u.copy_from_slice(&x[..n]);
+        self.state.v.copy_from_slice(&x[n..2 * n]);
+        self.state.a.copy_from_slice(&x[2 * n..]);
+        let lc = &self.stepper.Lc;
+        self.dd.gemv_tr(1.0, lc, &self.state.u, 0.0);
+        self.ddv.gemv_tr(1.0, lc, &self.state.v, 0.0);
+        self.dda.gemv_tr(1.0, lc, &self.state.a, 0.0);
+        self.law
+            .explicit_force(&self.dd, &self.ddv, &self.dda, &mut self.g);
+        self.law
+            .linear_force(&self.dd, &self.ddv, &self.dda, &mut self.lin);
+        for c in 0..q {
+            self.r[c] = force[c] - self.g[c] - self.lin[c];
+        }
+        self.r.iter().all(|v| v.is_finite())
+    }
+
     fn set_initial_state(&mut self, offset: &[f64]) {
         if offset.len() == 3 * self.n {
             self.initial_offset = Some(DVector::from_column_slice(offset));

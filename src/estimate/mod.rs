@@ -131,6 +131,18 @@ pub trait ResidualEstimator: Send {
     fn initial_state_fit(&self) -> Option<Vec<f64>> {
         None
     }
+    /// The current state estimate `(u; u̇; ü)` (3n, absolute), so that a live session can
+    /// swap a refined model in mid-stream ([`Self::continue_from`]). `None`: it cannot.
+    fn current_state(&self) -> Option<Vec<f64>> {
+        None
+    }
+    /// Continue from another estimator's state `x` (3n) and total connection force `force`
+    /// (q, N) at the sample just stepped (excitation `excitation`), instead of from rest:
+    /// the residual force starts as what this estimator's law leaves of `force`. Returns
+    /// `false` when this estimator cannot.
+    fn continue_from(&mut self, _x: &[f64], _force: &[f64], _excitation: &[f64]) -> bool {
+        false
+    }
 }
 
 /// The connection law `f = Σ pⱼ vⱼ(δ, δ̇, δ̈)` with the current parameter estimate, split

@@ -47,6 +47,18 @@
 //! fit every `--refit-every` samples. These *online* values are what a single filter
 //! pass can give; they are not the identification's final answer.
 //!
+//! **The windows' answer is swapped into the online model** (decided 2026-11-26): each
+//! time the windows' combination is published, the refitter sends it to the stepper, which
+//! builds a filter with those connection parameters and continues it from the current
+//! filter's state and connection force at the next sample boundary
+//! (`ResidualEstimator::continue_from`, no restart at rest, no tuning stall); the online fit
+//! restarts there. Why: the initial model's filter is biased (spring −32 to −52 % in the
+//! online fit); with the refined model the online values follow the session's answer
+//! (measured at 10 kHz: spring within 0.7 % after the first window). Their standard errors
+//! are still those of a least-squares fit to filtered (lagging) forces: too small, so the
+//! online values stay indicative. The 1989 estimator cannot hand its state over and keeps
+//! its model.
+//!
 //! # Windows: the session's identification while the test runs
 //!
 //! The refitter also cuts the stream into **windows** ([`crate::session`]): `W` contiguous
@@ -771,6 +783,11 @@ enum Stepped {
     /// The setup at the stream's rate, for the windows' identifications (sent before the
     /// first sample).
     RateSetup(Box<Setup>),
+    /// The stepper continues with the windows' combination as its model from the sample
+    /// after `sample`: the online fit restarts there.
+    ModelSwapped {
+        sample: u64,
+    },
     Notice(String),
     Warning(String),
 }
@@ -786,11 +803,12 @@ fn online_estimator(
     sigma: &[f64],
     estimated: &[bool],
     warmup: &TestData,
+    params: &[f64],
 ) -> Result<Box<dyn ResidualEstimator>, LiveError> {
     let model = Model::for_identification(setup)?;
     let mut opts = IdentifyOptions::from_setup(setup);
     check_observability(setup, &model, &opts)?;
-    let params = setup.initial_params();
+    let params = params.to_vec();
     let mut sigma = sigma.to_vec();
     if tune && kind == EstimatorKind::Kalman && opts.force_walk_std.is_none() && warmup.len() >= 3 {
         let t = tune_kalman(setup, &model, &params, &opts, &sigma, estimated, warmup)?;
@@ -825,6 +843,42 @@ fn online_estimator(
     })
 }
 
+/// Swap the windows' combination `params` into the stepper's model: a new online filter
+/// with those connection parameters continues from the current one's state and connection
+/// force (no restart at rest, no tuning stall). `Ok(false)`: nothing to swap (no filter
+/// yet, not started, or an estimator that cannot hand its state over — the 1989 one).
+fn swap_model(
+    st: &mut StepperState,
+    kind: EstimatorKind,
+    params: &[f64],
+    excitation: &[f64],
+) -> Result<bool, LiveError> {
+    let Some(old) = st.est.as_ref() else {
+        return Ok(false);
+    };
+    let Some(x) = old.current_state().filter(|_| st.started) else {
+        return Ok(false);
+    };
+    if params.len() != st.setup.param_keys().len() || !params.iter().all(|p| p.is_finite()) {
+        return Ok(false);
+    }
+    let estimated = vec![false; st.sigma.len()];
+    let mut new = online_estimator(
+        &st.setup,
+        kind,
+        false,
+        &st.sigma,
+        &estimated,
+        &TestData::default(),
+        params,
+    )?;
+    if !new.continue_from(&x, st.out.force.as_slice(), excitation) {
+        return Ok(false);
+    }
+    st.est = Some(new);
+    Ok(true)
+}
+
 struct StepperState {
     setup: Setup,
     est: Option<Box<dyn ResidualEstimator>>,
@@ -837,6 +891,7 @@ struct StepperState {
 fn stepper_stage(
     rx: Receiver<Msg<LiveItem>>,
     tx: Sender<Msg<Stepped>>,
+    swap: Receiver<Vec<f64>>,
     base: &Setup,
     kind: EstimatorKind,
     tune: bool,
@@ -895,7 +950,13 @@ fn stepper_stage(
         }
         st.sigma = sigma;
         st.est = Some(online_estimator(
-            &st.setup, kind, tune, &st.sigma, &estimated, &d,
+            &st.setup,
+            kind,
+            tune,
+            &st.sigma,
+            &estimated,
+            &d,
+            &st.setup.initial_params(),
         )?);
         Ok(())
     };
@@ -952,8 +1013,25 @@ fn stepper_stage(
                     }
                     continue;
                 }
+                // A window's combination arrived: continue with it as the model from the
+                // sample just stepped (at a sample boundary, from the current state).
+                let newer = swap.try_iter().last();
+                let here = newer.as_ref().map(|_| (a.sample, a.excitation.clone()));
                 let m = step_one(&mut st, a, false)?;
                 ok &= send(m);
+                if let (Some(params), Some((sample, excitation))) = (newer, here) {
+                    match swap_model(&mut st, kind, &params, &excitation) {
+                        Ok(true) => {
+                            ok &= send(Msg::Data(Stepped::ModelSwapped { sample }));
+                        }
+                        Ok(false) => {}
+                        Err(e) => {
+                            ok &= send(Msg::Data(Stepped::Warning(format!(
+                                "the windows' combination could not be swapped into the online model at sample {sample}: {e}; the online filter keeps its model"
+                            ))));
+                        }
+                    }
+                }
             }
         }
     };
@@ -1360,6 +1438,7 @@ impl WindowRefitter {
 fn refitter_stage(
     rx: Receiver<Msg<Stepped>>,
     tx: Sender<Msg<Refitted>>,
+    swap: Sender<Vec<f64>>,
     setup: &Setup,
     opts_live: &LiveOptions,
     batch_only: bool,
@@ -1384,6 +1463,15 @@ fn refitter_stage(
         };
         if let Some(w) = windows.as_mut() {
             for m in w.poll() {
+                // The combination goes to the stepper as its next model (`swap_model`).
+                if let Refitted::Parameters {
+                    kind: "batch",
+                    params,
+                    ..
+                } = &m
+                {
+                    let _ = swap.send(params.iter().map(|p| p.value).collect());
+                }
                 ok &= send(Msg::Data(m));
             }
         }
@@ -1463,6 +1551,17 @@ fn refitter_stage(
                 }
                 ok &= send(Msg::Data(Refitted::SessionSetup(Box::new(session.clone()))));
                 session_setup = Some(Box::new(session));
+            }
+            Stepped::ModelSwapped { sample } => {
+                // The filter's residual forces are now relative to the windows' combination:
+                // the online fit pools from here on (the samples before were fitted with the
+                // initial model's bias).
+                acc = ParameterAccumulator::new(setup, opts.stick_band, opts.forgetting);
+                since = 0;
+                ok &= send(Msg::Data(Refitted::Notice(format!(
+                    "the online filter continues from sample {} with the windows' combination as its model; the online fit restarts there",
+                    sample + 1
+                ))));
             }
             Stepped::Notice(n) => ok &= send(Msg::Data(Refitted::Notice(n))),
             Stepped::Warning(w) => ok &= send(Msg::Data(Refitted::Warning(w))),
@@ -2000,12 +2099,16 @@ pub fn run(
                 al.faults
             })
             .map_err(|e| LiveError::Pipeline(e.to_string()))?;
+        // Windows' combinations, refitter → stepper (`swap_model`); unbounded: one message
+        // per identified window.
+        let (swap_tx, swap_rx) = crossbeam_channel::unbounded::<Vec<f64>>();
         let stepper = thread::Builder::new()
             .name("live-stepper".into())
             .spawn_scoped(scope, move || {
                 stepper_stage(
                     al_rx,
                     st_tx,
+                    swap_rx,
                     setup,
                     opts.estimator,
                     opts.tune_warmup,
@@ -2016,7 +2119,7 @@ pub fn run(
         let refitter = thread::Builder::new()
             .name("live-refit".into())
             .spawn_scoped(scope, move || {
-                refitter_stage(st_rx, rf_tx, setup, opts, batch_only)
+                refitter_stage(st_rx, rf_tx, swap_tx, setup, opts, batch_only)
             })
             .map_err(|e| LiveError::Pipeline(e.to_string()))?;
 
@@ -2188,6 +2291,139 @@ pub fn run(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The online model swap (`swap_model`): (a) a filter that continues from another's
+    /// state and connection force with the same law gives the same estimates from there on;
+    /// (b) swapped to the windows' answer (here the truth) mid-stream, the online fit over
+    /// the samples after the swap finds the spring within 1 % (measured −0.18 %), where the
+    /// initial model's filter was more than 10 % off (−32 %). Friction setup, own
+    /// discretisation, 1 % noise.
+    #[test]
+    fn a_swapped_model_continues_from_the_filter_s_state() {
+        use crate::simulate::{Noise, Scenario, SimulateOptions, simulate};
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/recordings/two-beam-friction.toml"
+        );
+        let setup = Setup::from_file(std::path::Path::new(path)).unwrap();
+        let n = 3000;
+        let sim = simulate(
+            &setup,
+            &SimulateOptions {
+                scenario: Scenario::Random { rms: 2e4 },
+                steps: n,
+                dt_s: setup.dt_s,
+                substeps: 1,
+                noise: Noise::Additive(0.01),
+                seed: 3,
+            },
+        )
+        .unwrap();
+        let data = TestData {
+            samples: (0..n as u64).collect(),
+            t_ns: (0..n as u64).map(|i| i * 100_000).collect(),
+            excitation: sim.excitation.clone(),
+            response: sim.response.clone(),
+        };
+        let (sigma, _) = crate::identify::channel_noise(&setup, &data);
+        let q = setup.connections.len();
+        let estimator = |params: &[f64]| {
+            online_estimator(
+                &setup,
+                EstimatorKind::Kalman,
+                false,
+                &sigma,
+                &vec![false; sigma.len()],
+                &TestData::default(),
+                params,
+            )
+            .unwrap()
+        };
+        let fit = |outs: &[StepOutput]| {
+            let opts = IdentifyOptions::from_setup(&setup);
+            let mut acc = ParameterAccumulator::new(&setup, opts.stick_band, 1.0);
+            for o in outs {
+                acc.push(o);
+            }
+            solve_online(&acc, &setup, opts.max_condition).unwrap()
+        };
+        let half = n / 2;
+        let initial = setup.initial_params();
+        let mut st = StepperState {
+            setup: setup.clone(),
+            est: Some(estimator(&initial)),
+            warmup: Vec::new(),
+            sigma: sigma.clone(),
+            started: true,
+            out: StepOutput::new(q),
+        };
+        let mut before = Vec::new();
+        {
+            let est = st.est.as_mut().unwrap();
+            est.start(0, &sim.excitation[0]);
+            for i in 1..half {
+                let out = &mut st.out;
+                assert!(
+                    est.step(i as u64, &sim.excitation[i], &sim.response[i], out)
+                        .unwrap()
+                );
+                before.push(out.clone());
+            }
+        }
+        // (a) The same law, continued from the state: the same estimates.
+        let mut same = estimator(&initial);
+        let x = st.est.as_ref().unwrap().current_state().unwrap();
+        assert!(same.continue_from(&x, st.out.force.as_slice(), &sim.excitation[half - 1]));
+        let (mut a, mut b) = (StepOutput::new(q), StepOutput::new(q));
+        {
+            // A copy of the original to step alongside: rebuild it by replaying.
+            let mut original = estimator(&initial);
+            original.start(0, &sim.excitation[0]);
+            for i in 1..half {
+                original
+                    .step(i as u64, &sim.excitation[i], &sim.response[i], &mut a)
+                    .unwrap();
+            }
+            for i in half..half + 200 {
+                original
+                    .step(i as u64, &sim.excitation[i], &sim.response[i], &mut a)
+                    .unwrap();
+                same.step(i as u64, &sim.excitation[i], &sim.response[i], &mut b)
+                    .unwrap();
+                let scale = a.force[0].abs().max(1.0);
+                assert!(
+                    (a.force[0] - b.force[0]).abs() <= 1e-6 * scale,
+                    "sample {i}: {} vs {}",
+                    a.force[0],
+                    b.force[0]
+                );
+            }
+        }
+        // (b) The truth swapped in at the half.
+        let truth = setup.truth_params().unwrap();
+        assert!(
+            swap_model(
+                &mut st,
+                EstimatorKind::Kalman,
+                &truth,
+                &sim.excitation[half - 1]
+            )
+            .unwrap()
+        );
+        let mut after = Vec::new();
+        for i in half..n {
+            let est = st.est.as_mut().unwrap();
+            assert!(
+                est.step(i as u64, &sim.excitation[i], &sim.response[i], &mut st.out)
+                    .unwrap()
+            );
+            after.push(st.out.clone());
+        }
+        let spring = |ps: &[LiveParameter]| ps.iter().find(|p| p.key == "joint6.u").unwrap().value;
+        let (k0, k1) = (spring(&fit(&before)), spring(&fit(&after)));
+        assert!((k0 / 3e5 - 1.0).abs() > 0.1, "before the swap: {k0}");
+        assert!((k1 / 3e5 - 1.0).abs() < 0.01, "after the swap: {k1}");
+    }
 
     /// The windows are identified on the worker while samples keep coming. Accelerometers
     /// only (continuous data, 32 sub-steps; 10 % noise): the first window (1,000 samples)
