@@ -576,8 +576,8 @@ impl ResidualEstimator for KalmanEstimator {
             .explicit_force(&self.dd, &self.ddv, &self.dda, &mut self.g);
         self.law
             .linear_force(&self.dd, &self.ddv, &self.dda, &mut self.lin);
-        for c in 0..q {
-            self.r[c] = force[c] - self.g[c] - self.lin[c];
+        for (c, f) in force.iter().enumerate() {
+            self.r[c] = f - self.g[c] - self.lin[c];
         }
         self.r.iter().all(|v| v.is_finite())
     }
