@@ -1607,20 +1607,23 @@ fn raise_substeps(
     // model sub-step, 64-sub-step data, 1 % noise, seed 22): every level's cost at the
     // 1-sub-step minimum (+1.1 %) was above its 9.09, so no level was taken and the answer
     // stayed 344 standard errors off.
+    let refine_at = |level: usize| {
+        refine_global(
+            setup,
+            model,
+            start,
+            scales,
+            &data.excitation,
+            &data.response,
+            sigma,
+            level,
+            opts.output_error_iterations,
+        )
+    };
     let mut refined_at: Vec<(usize, crate::estimate::output_error::Refined)> = Vec::new();
     while l <= cap && (linear || data.len() * l <= MAX_RAISED_STEPS) {
         let best_here = if linear {
-            match refine_global(
-                setup,
-                model,
-                start,
-                scales,
-                &data.excitation,
-                &data.response,
-                sigma,
-                l,
-                opts.output_error_iterations,
-            ) {
+            match refine_at(l) {
                 Ok(fresh) if fresh.report.accepted => {
                     let c = fresh.report.cost_end;
                     refined_at.push((l, fresh));
@@ -1659,20 +1662,7 @@ fn raise_substeps(
                 .iter()
                 .position(|x| x.0 == level)
                 .map(|i| refined_at.swap_remove(i).1);
-            let again = || {
-                refine_global(
-                    setup,
-                    model,
-                    start,
-                    scales,
-                    &data.excitation,
-                    &data.response,
-                    sigma,
-                    level,
-                    opts.output_error_iterations,
-                )
-            };
-            if let Ok(r2) = done.map_or_else(again, Ok)
+            if let Ok(r2) = done.map_or_else(|| refine_at(level), Ok)
                 && r2.report.cost_end < r.report.cost_end
             {
                 // A finer model whose best fit is worse than the coarser one's is not taken

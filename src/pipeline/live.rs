@@ -2292,6 +2292,30 @@ pub fn run(
 mod tests {
     use super::*;
 
+    /// `jointid simulate`'s random test of `setup`: `n` samples, `substeps` per sample,
+    /// additive noise `noise` of each channel's RMS.
+    fn random_test(
+        setup: &Setup,
+        n: usize,
+        substeps: usize,
+        noise: f64,
+        seed: u64,
+    ) -> crate::simulate::Simulated {
+        use crate::simulate::{Noise, Scenario, SimulateOptions, simulate};
+        simulate(
+            setup,
+            &SimulateOptions {
+                scenario: Scenario::Random { rms: 2e4 },
+                steps: n,
+                dt_s: setup.dt_s,
+                substeps,
+                noise: Noise::Additive(noise),
+                seed,
+            },
+        )
+        .unwrap()
+    }
+
     /// The online model swap (`swap_model`): (a) a filter that continues from another's
     /// state and connection force with the same law gives the same estimates from there on;
     /// (b) swapped to the windows' answer (here the truth) mid-stream, the online fit over
@@ -2300,25 +2324,13 @@ mod tests {
     /// discretisation, 1 % noise.
     #[test]
     fn a_swapped_model_continues_from_the_filter_s_state() {
-        use crate::simulate::{Noise, Scenario, SimulateOptions, simulate};
         let path = concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/recordings/two-beam-friction.toml"
         );
         let setup = Setup::from_file(std::path::Path::new(path)).unwrap();
         let n = 3000;
-        let sim = simulate(
-            &setup,
-            &SimulateOptions {
-                scenario: Scenario::Random { rms: 2e4 },
-                steps: n,
-                dt_s: setup.dt_s,
-                substeps: 1,
-                noise: Noise::Additive(0.01),
-                seed: 3,
-            },
-        )
-        .unwrap();
+        let sim = random_test(&setup, n, 1, 0.01, 3);
         let data = TestData {
             samples: (0..n as u64).collect(),
             t_ns: (0..n as u64).map(|i| i * 100_000).collect(),
@@ -2433,7 +2445,6 @@ mod tests {
     /// combination of both, with the truth inside ±3 of its standard errors.
     #[test]
     fn windows_are_identified_on_the_worker_and_combined() {
-        use crate::simulate::{Noise, Scenario, SimulateOptions, simulate};
         let path = concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/recordings/two-beam-accel.toml"
@@ -2446,18 +2457,7 @@ mod tests {
         let setup = Setup::from_toml(&text, path).unwrap();
         assert_eq!(setup.estimator.kind, Some(EstimatorKind::Ml));
         let n = 2600;
-        let sim = simulate(
-            &setup,
-            &SimulateOptions {
-                scenario: Scenario::Random { rms: 2e4 },
-                steps: n,
-                dt_s: setup.dt_s,
-                substeps: 32,
-                noise: Noise::Additive(0.1),
-                seed: 2,
-            },
-        )
-        .unwrap();
+        let sim = random_test(&setup, n, 32, 0.1, 2);
         let session = setup.with_windows(WindowSpec::new(1000, 1200)).unwrap();
         let mut w = WindowRefitter::start(session).unwrap();
         let aligned = |i: usize| Aligned {
