@@ -162,6 +162,10 @@ pub struct TruthSystem {
     gamma: f64,
     beta: f64,
     status: Vec<Status>,
+    /// The force solve's status sets tried so far (flat, `q` per set) and the one before the
+    /// last check: kept here so a sub-step allocates nothing.
+    seen: Vec<Status>,
+    before: Vec<Status>,
     /// Work buffers of [`TruthSystem::substep`] (a sub-step runs millions of times per
     /// identification; allocating its temporaries was a third of the time).
     work: Work,
@@ -283,7 +287,7 @@ impl TruthSystem {
             blocks.push((c.basis.clone(), truth, sign));
         }
         let q = blocks.len();
-        let status = blocks
+        let status: Vec<Status> = blocks
             .iter()
             .map(|b| {
                 if b.2.is_some() {
@@ -303,6 +307,8 @@ impl TruthSystem {
             h,
             gamma: Newmark.gamma,
             beta: Newmark.beta,
+            seen: Vec::with_capacity(4 * status.len()),
+            before: Vec::with_capacity(status.len()),
             status,
         })
     }
@@ -373,7 +379,7 @@ impl TruthSystem {
                 }
             }
         }
-        let mut seen: Vec<Vec<Status>> = Vec::new();
+        self.seen.clear();
         self.work.f.fill(0.0);
         for _round in 0..16 {
             // Newton for the current statuses.
@@ -459,7 +465,8 @@ impl TruthSystem {
             let w = &mut self.work;
             w.deformations(&self.G, bh2, gh);
             let mut changed = false;
-            let before = self.status.clone();
+            self.before.clear();
+            self.before.extend_from_slice(&self.status);
             for c in 0..q {
                 let Some(s) = &self.blocks[c].2 else { continue };
                 let level = s.level;
@@ -486,15 +493,15 @@ impl TruthSystem {
             if !changed {
                 return Some(());
             }
-            if seen.contains(&self.status) {
+            if q > 0 && self.seen.chunks(q).any(|set| set == self.status.as_slice()) {
                 // Cycling between slip directions: the consistent answer is to stick.
-                for (c, was) in before.iter().enumerate() {
+                for (c, was) in self.before.iter().enumerate() {
                     if self.blocks[c].2.is_some() && *was != self.status[c] {
                         self.status[c] = Status::Stick;
                     }
                 }
             }
-            seen.push(before);
+            self.seen.extend_from_slice(&self.before);
         }
         Some(())
     }
