@@ -44,6 +44,18 @@ const LEVEL_CHOICE_SAMPLES: usize = 2_000;
 /// 11 grid points (half decades) then 6 golden-section steps in log space.
 const PEM_TUNE_RANGE: [f64; 2] = [1e-2, 1e3];
 
+/// How [`tune_pem_force`] searches the observer force.
+#[derive(Debug, Clone, Copy)]
+enum ForceSearch {
+    /// Over [`PEM_TUNE_RANGE`]: decade grid, 2 golden-section steps — enough to compare the
+    /// likelihoods of the sub-step levels (they differ by far more than what a finer search
+    /// gains), at 8 runs instead of 17 per level.
+    Coarse,
+    /// ± [`NEAR_DECADES`] around a force already found, half-decade grid, 6 golden steps
+    /// (not positive or not finite: over the whole range, half-decade grid).
+    Near(f64),
+}
+
 /// Half-width, in decades, of the observer-force search on a whole long record around the
 /// force tuned on its prefix (the likelihood of the start values moves little between the
 /// prefix and the whole record). A grid of 5 points (half decades) instead of 11: the
@@ -75,7 +87,7 @@ fn tune_pem_force(
     start: &[f64],
     substeps: usize,
     initial: Option<&[f64]>,
-    near: Option<f64>,
+    search: ForceSearch,
 ) -> (f64, f64) {
     use crate::estimate::prediction_error::{innovations, predictor};
     let scale = crate::estimate::kalman::force_scale_of(model);
@@ -117,15 +129,17 @@ fn tune_pem_force(
         -0.5 * (c + n * log_det)
     };
     // Near a force already tuned (on the prefix): ± NEAR_DECADES around it, half-decade grid.
-    let (lo, hi, grid) = match near.filter(|f| f.is_finite() && *f > 0.0) {
-        Some(f) => (
+    let (lo, hi, grid, golden) = match search {
+        ForceSearch::Near(f) if f.is_finite() && f > 0.0 => (
             f / 10f64.powf(NEAR_DECADES),
             f * 10f64.powf(NEAR_DECADES),
             (4.0 * NEAR_DECADES) as usize + 1,
+            6,
         ),
-        None => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 11),
+        ForceSearch::Coarse => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 6, 2),
+        ForceSearch::Near(_) => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 11, 6),
     };
-    let (force, ll, _) = crate::estimate::tuning::maximise_log(lo, hi, grid, 6, &mut loglik);
+    let (force, ll, _) = crate::estimate::tuning::maximise_log(lo, hi, grid, golden, &mut loglik);
     (force, ll)
 }
 
@@ -275,7 +289,7 @@ pub(super) fn refine_by_prediction_error(
             start,
             l,
             opts.initial_state.as_deref(),
-            None,
+            ForceSearch::Coarse,
         );
         (l, f, ll)
     })
@@ -289,7 +303,8 @@ pub(super) fn refine_by_prediction_error(
         .copied()
         .find(|t| t.2 >= best - significant)
         .unwrap_or((opts.substeps, 0.0, f64::NEG_INFINITY));
-    let force_std = if prefix.is_some() && tuned.iter().any(|t| t.0 == sub) {
+    // The chosen level's force, searched again near the coarse one (on the whole record).
+    let force_std = if tuned.iter().any(|t| t.0 == sub) {
         tune_pem_force(
             setup,
             model,
@@ -298,7 +313,7 @@ pub(super) fn refine_by_prediction_error(
             start,
             sub,
             opts.initial_state.as_deref(),
-            Some(force_std),
+            ForceSearch::Near(force_std),
         )
         .0
     } else {
