@@ -56,10 +56,11 @@ enum ForceSearch {
     Near(f64),
 }
 
-/// Half-width, in decades, of the observer-force search on a whole long record around the
-/// force tuned on its prefix (the likelihood of the start values moves little between the
-/// prefix and the whole record). A grid of 5 points (half decades) instead of 11: the
-/// re-tune was 17 % of a 20,000-sample identification.
+/// Half-width, in decades, of the observer-force search at the chosen sub-step level around
+/// the force its coarse search found (on a long record, found on its prefix: the likelihood
+/// of the start values moves little between the prefix and the whole record). A grid of 5
+/// points (half decades) instead of 11: the re-tune was 17 % of a 20,000-sample
+/// identification.
 const NEAR_DECADES: f64 = 1.0;
 
 /// The observer's process-noise force (N per sample at the connections) that maximises the
@@ -128,7 +129,6 @@ fn tune_pem_force(
                 .sum::<f64>();
         -0.5 * (c + n * log_det)
     };
-    // Near a force already tuned (on the prefix): ± NEAR_DECADES around it, half-decade grid.
     let (lo, hi, grid, golden) = match search {
         ForceSearch::Near(f) if f.is_finite() && f > 0.0 => (
             f / 10f64.powf(NEAR_DECADES),
@@ -399,12 +399,16 @@ mod tests {
         assert!(pem_undetermined(&setup, &at_bound, &weak, &start_se, false).is_none());
         weak[f] = -2.7;
         assert!(pem_undetermined(&setup, &at_bound, &weak, &start_se, false).is_none());
-        // …unless the record starts in motion (the observer absorbs the friction there).
+        // …unless the record starts in motion (the observer absorbs the friction there)
+        // and no likelihood ratio was measured; with one it stands there too.
         assert!(
             pem_undetermined(&setup, &at_bound, &weak, &start_se, true)
                 .unwrap()
                 .contains("in motion")
         );
+        let mut tested = at_bound.clone();
+        tested.bound_likelihood_ratio[f] = Some(0.3);
+        assert!(pem_undetermined(&setup, &tested, &weak, &start_se, true).is_none());
         let mut zero_se = at_bound.clone();
         zero_se.std_errors[f] = 0.0;
         assert!(

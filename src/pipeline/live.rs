@@ -808,19 +808,18 @@ fn online_estimator(
     let model = Model::for_identification(setup)?;
     let mut opts = IdentifyOptions::from_setup(setup);
     check_observability(setup, &model, &opts)?;
-    let params = params.to_vec();
     let mut sigma = sigma.to_vec();
     if tune && kind == EstimatorKind::Kalman && opts.force_walk_std.is_none() && warmup.len() >= 3 {
-        let t = tune_kalman(setup, &model, &params, &opts, &sigma, estimated, warmup)?;
+        let t = tune_kalman(setup, &model, params, &opts, &sigma, estimated, warmup)?;
         opts.force_walk_std = Some(t.force_walk_std);
         opts.model_error_std = Some(t.model_error_std);
         sigma = t.sigma;
     }
     let sigma = &sigma;
-    let with_terms = model.with_connection_terms(setup, &params);
+    let with_terms = model.with_connection_terms(setup, params);
     let inputs = EstimatorInputs {
         model: &with_terms,
-        law: ConnectionLaw::new(setup, &params),
+        law: ConnectionLaw::new(setup, params),
         dt_s: setup.dt_s,
         substeps: opts.substeps,
         newmark: setup.newmark,
@@ -845,7 +844,8 @@ fn online_estimator(
 
 /// Swap the windows' combination `params` into the stepper's model: a new online filter
 /// with those connection parameters continues from the current one's state and connection
-/// force (no restart at rest, no tuning stall). `Ok(false)`: nothing to swap (no filter
+/// force (no restart at rest, no tuning stall: `--tune-warmup`'s likelihood tuning is not
+/// redone, the swapped filter uses the setup's or default random walk). `Ok(false)`: nothing to swap (no filter
 /// yet, not started, or an estimator that cannot hand its state over — the 1989 one).
 fn swap_model(
     st: &mut StepperState,
