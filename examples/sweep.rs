@@ -135,9 +135,23 @@ fn main() -> anyhow::Result<()> {
                                     inside += 1;
                                 }
                                 if a.iter().any(|x| x == "--verbose") {
+                                    // The prediction error's sandwich and naive errors too
+                                    // (the stated one is the larger, or wider still).
+                                    let pem = id
+                                        .output_error
+                                        .as_ref()
+                                        .and_then(|o| o.prediction_error.as_ref());
+                                    let extra = match (pem, p.crlb) {
+                                        (Some(rep), Some(naive)) => format!(
+                                            " naive {naive:.3e} sandwich {:.3e} cost {:.4}",
+                                            naive * rep.sandwich_ratio.get(k).copied().unwrap_or(f64::NAN),
+                                            rep.cost_end
+                                        ),
+                                        _ => String::new(),
+                                    };
                                     println!(
-                                        "  seed {seed} {}: {:.6e} se {:.3e} err/se {e:.2}",
-                                        keys[k], p.value, p.std_error
+                                        "  seed {seed} {}: {:.6e} se {:.3e} err/se {e:.2} err {:.4e}{extra}",
+                                        keys[k], p.value, p.std_error, p.value - sim.truth[k]
                                     );
                                 }
                             }

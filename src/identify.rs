@@ -1364,7 +1364,11 @@ fn finish_with_output_error(
                     p.value = r.values[j];
                     p.std_error = r.std_errors[j];
                     p.ci95 = [p.value - 1.96 * p.std_error, p.value + 1.96 * p.std_error];
-                    p.crlb = Some(r.naive[j]);
+                    // No Cramér–Rao bound: the law's predictions are not smooth in its
+                    // parameters (a switch a sub-step early flips the force), and the
+                    // predictor's naive error is no bound (it overstates the error 3×
+                    // on continuous data; ACCURACY.md).
+                    p.crlb = None;
                 }
                 result.output_error = Some(crate::estimate::output_error::OutputErrorReport {
                     accepted: true,
