@@ -135,23 +135,27 @@ fn main() -> anyhow::Result<()> {
                                     inside += 1;
                                 }
                                 if a.iter().any(|x| x == "--verbose") {
-                                    // The prediction error's sandwich and naive errors too
-                                    // (the stated one is the larger, or wider still).
+                                    // The prediction error's sandwich/naive ratio and
+                                    // normalised cost, or the Cramér–Rao bound.
                                     let pem = id
                                         .output_error
                                         .as_ref()
                                         .and_then(|o| o.prediction_error.as_ref());
                                     let extra = match (pem, p.crlb) {
-                                        (Some(rep), Some(naive)) => format!(
-                                            " naive {naive:.3e} sandwich {:.3e} cost {:.4}",
-                                            naive * rep.sandwich_ratio.get(k).copied().unwrap_or(f64::NAN),
+                                        (Some(rep), _) => format!(
+                                            " sandwich/naive {:.3} cost {:.4}",
+                                            rep.sandwich_ratio.get(k).copied().unwrap_or(f64::NAN),
                                             rep.cost_end
                                         ),
+                                        (None, Some(b)) => format!(" bound {b:.3e}"),
                                         _ => String::new(),
                                     };
                                     println!(
                                         "  seed {seed} {}: {:.6e} se {:.3e} err/se {e:.2} err {:.4e}{extra}",
-                                        keys[k], p.value, p.std_error, p.value - sim.truth[k]
+                                        keys[k],
+                                        p.value,
+                                        p.std_error,
+                                        p.value - sim.truth[k]
                                     );
                                 }
                             }
