@@ -1366,7 +1366,7 @@ fn finish_with_output_error(
                     p.ci95 = [p.value - 1.96 * p.std_error, p.value + 1.96 * p.std_error];
                     // No Cramér–Rao bound: the law's predictions are not smooth in its
                     // parameters (a switch a sub-step early flips the force), and the
-                    // predictor's naive error is no bound (it overstates the error 3×
+                    // predictor's naive error is no bound (it overstates the error 3–4×
                     // on continuous data; ACCURACY.md).
                     p.crlb = None;
                 }

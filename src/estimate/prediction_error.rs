@@ -708,10 +708,12 @@ pub fn refine(
     // the data have none). The naive error assumes the innovations have the variance the
     // filter predicts; they come out smaller (normalised cost 0.2 on the shipped
     // recording), so it overstates the error. It used to be a floor under the sandwich;
-    // measured over 25 seeds per row, that floor made every continuous-data row 99–100 %
-    // with no estimate beyond 0.8–0.9 errors at 1 % noise (the errors 3–4× wider than the
-    // spread of the estimates); the sandwich alone gives 96–99 % (worst 2.3–3.0).
-    // ACCURACY.md, "The sandwich is the error".
+    // measured over 50 seeds per row, that floor made every continuous-data row 99–100 %
+    // with no estimate beyond 0.9 errors at 1 % noise (the errors 3–4× wider than the
+    // spread of the estimates); the sandwich alone gives 92–98 % there (worst 3.5). On
+    // data of the model's own discretisation with friction the sandwich is 1.5× narrower
+    // than the spread (88 % at 1 % noise; the rough cost). ACCURACY.md, "The sandwich is
+    // the error".
     let mut std_errors: Vec<f64> = se.clone();
     // A friction level on its bound 0: the estimate is one-sided and the sandwich's
     // curvature is not its error (a boundary estimate is not normal). Its error is kept at
