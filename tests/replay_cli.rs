@@ -688,6 +688,38 @@ fn windowed_setup(
     p
 }
 
+/// The shipped friction setup's law (`sign(u), u, const(100), v`, truth 3000, 3e5, 0, 0) in
+/// windows of `window` samples every `every`, default pipeline.
+fn friction_windows(dir: &Path, window: usize, every: usize) -> std::path::PathBuf {
+    windowed_setup(
+        dir,
+        "two-beam-friction.toml",
+        &["sign(u)", "u", "const(100)", "v"],
+        &[3000.0, 3.0e5, 0.0, 0.0],
+        "kalman",
+        window,
+        every,
+    )
+}
+
+/// Every window identified, and parameter `k` of each within `k_se` of its standard errors
+/// of `truth`, for every `(k, truth)`.
+fn windows_hold(windows: &[serde_json::Value], truths: &[(usize, f64)], k_se: f64) {
+    for w in windows {
+        assert!(w["failure"].is_null(), "{w}");
+        for &(k, truth) in truths {
+            let (value, se) = (
+                w["parameters"][k][0].as_f64().unwrap(),
+                w["parameters"][k][1].as_f64().unwrap(),
+            );
+            assert!(
+                (value - truth).abs() < k_se * se,
+                "parameter {k}, window {w}"
+            );
+        }
+    }
+}
+
 fn simulate_to(dir: &Path, setup: &Path, steps: &str, seed: &str) -> std::path::PathBuf {
     simulate_with(dir, setup, seed, &["--steps", steps, "--substeps", "8"])
 }
@@ -751,15 +783,7 @@ fn a_record_identified_in_windows_combines_them() {
 #[test]
 fn windows_in_motion_on_a_damped_structure_hold_the_truth() {
     let dir = tempfile::tempdir().unwrap();
-    let setup = windowed_setup(
-        dir.path(),
-        "two-beam-friction.toml",
-        &["sign(u)", "u", "const(100)", "v"],
-        &[3000.0, 3.0e5, 0.0, 0.0],
-        "kalman",
-        3000,
-        3000,
-    );
+    let setup = friction_windows(dir.path(), 3000, 3000);
     let text = std::fs::read_to_string(&setup).unwrap();
     assert!(text.contains("hinges = [6]"));
     let damped = text.replacen(
@@ -772,19 +796,7 @@ fn windows_in_motion_on_a_damped_structure_hold_the_truth() {
     let v = replay_json(&[rec.to_str().unwrap()]);
     let windows = v["session"]["windows"].as_array().unwrap();
     assert_eq!(windows.len(), 3);
-    for w in windows {
-        assert!(w["failure"].is_null(), "{w}");
-        for (k, truth) in [3000.0, 3.0e5, 0.0, 0.0].into_iter().enumerate() {
-            let (value, se) = (
-                w["parameters"][k][0].as_f64().unwrap(),
-                w["parameters"][k][1].as_f64().unwrap(),
-            );
-            assert!(
-                (value - truth).abs() < 2.5 * se,
-                "parameter {k}, window {w}"
-            );
-        }
-    }
+    windows_hold(windows, &[(0, 3000.0), (1, 3.0e5), (2, 0.0), (3, 0.0)], 2.5);
 }
 
 /// A window that starts in motion (every window but the first): the default pipeline
@@ -794,29 +806,12 @@ fn windows_in_motion_on_a_damped_structure_hold_the_truth() {
 #[test]
 fn a_window_that_starts_in_motion_is_identified_or_refused() {
     let dir = tempfile::tempdir().unwrap();
-    let setup = windowed_setup(
-        dir.path(),
-        "two-beam-friction.toml",
-        &["sign(u)", "u", "const(100)", "v"],
-        &[3000.0, 3.0e5, 0.0, 0.0],
-        "kalman",
-        2000,
-        2000,
-    );
+    let setup = friction_windows(dir.path(), 2000, 2000);
     let rec = simulate_to(dir.path(), &setup, "4000", "1");
     let v = replay_json(&[rec.to_str().unwrap()]);
     let windows = v["session"]["windows"].as_array().unwrap();
     assert_eq!(windows.len(), 2);
-    for w in windows {
-        assert!(w["failure"].is_null(), "{w}");
-        for (k, truth) in [(0, 3000.0), (1, 3.0e5)] {
-            let (value, se) = (
-                w["parameters"][k][0].as_f64().unwrap(),
-                w["parameters"][k][1].as_f64().unwrap(),
-            );
-            assert!((value - truth).abs() < 3.0 * se, "window {w}");
-        }
-    }
+    windows_hold(windows, &[(0, 3000.0), (1, 3.0e5)], 3.0);
     let notes: Vec<&str> = v["notes"]
         .as_array()
         .unwrap()

@@ -362,9 +362,13 @@ impl KalmanEstimator {
         self.state.a.copy_from_slice(&z[2 * n..3 * n]);
         let lc = &self.stepper.Lc;
         out.sample = sample;
-        out.delta.gemv_tr(1.0, lc, &self.state.u, 0.0);
-        out.delta_v.gemv_tr(1.0, lc, &self.state.v, 0.0);
-        out.delta_a.gemv_tr(1.0, lc, &self.state.a, 0.0);
+        connection_deformation(
+            lc,
+            &self.state,
+            &mut out.delta,
+            &mut out.delta_v,
+            &mut out.delta_a,
+        );
         self.law
             .linear_force(&out.delta, &out.delta_v, &out.delta_a, &mut self.lin);
         for c in 0..q {
@@ -441,9 +445,7 @@ impl ResidualEstimator for KalmanEstimator {
             // switches one sample late and the random-walk R must follow a one-sample spike
             // of 2F at every crossing, which a smooth R cannot.
             let lc = &self.stepper.Lc;
-            self.dd.gemv_tr(1.0, lc, &self.pred.u, 0.0);
-            self.ddv.gemv_tr(1.0, lc, &self.pred.v, 0.0);
-            self.dda.gemv_tr(1.0, lc, &self.pred.a, 0.0);
+            connection_deformation(lc, &self.pred, &mut self.dd, &mut self.ddv, &mut self.dda);
             self.law
                 .explicit_force(&self.dd, &self.ddv, &self.dda, &mut self.lin);
             self.lin -= &self.g;
@@ -487,9 +489,13 @@ impl ResidualEstimator for KalmanEstimator {
         }
         // Explicit force for the next interval from this (filtered) state.
         let lc = &self.stepper.Lc;
-        out.delta.gemv_tr(1.0, lc, &self.state.u, 0.0);
-        out.delta_v.gemv_tr(1.0, lc, &self.state.v, 0.0);
-        out.delta_a.gemv_tr(1.0, lc, &self.state.a, 0.0);
+        connection_deformation(
+            lc,
+            &self.state,
+            &mut out.delta,
+            &mut out.delta_v,
+            &mut out.delta_a,
+        );
         self.law
             .explicit_force(&out.delta, &out.delta_v, &out.delta_a, &mut self.g);
         self.p_prev.copy_from_slice(excitation);
@@ -569,9 +575,7 @@ impl ResidualEstimator for KalmanEstimator {
         self.state.v.copy_from_slice(&x[n..2 * n]);
         self.state.a.copy_from_slice(&x[2 * n..]);
         let lc = &self.stepper.Lc;
-        self.dd.gemv_tr(1.0, lc, &self.state.u, 0.0);
-        self.ddv.gemv_tr(1.0, lc, &self.state.v, 0.0);
-        self.dda.gemv_tr(1.0, lc, &self.state.a, 0.0);
+        connection_deformation(lc, &self.state, &mut self.dd, &mut self.ddv, &mut self.dda);
         self.law
             .explicit_force(&self.dd, &self.ddv, &self.dda, &mut self.g);
         self.law
@@ -714,6 +718,19 @@ pub fn spectral_radius_by_powers(c: &DMatrix<f64>) -> f64 {
         log = 2.0 * log + n.ln();
     }
     (log / 2f64.powi(K)).exp()
+}
+
+/// The connection deformation, its rate and acceleration `Lcᵀ(u, u̇, ü)` of state `s`.
+fn connection_deformation(
+    lc: &DMatrix<f64>,
+    s: &State,
+    d: &mut DVector<f64>,
+    dv: &mut DVector<f64>,
+    da: &mut DVector<f64>,
+) {
+    d.gemv_tr(1.0, lc, &s.u, 0.0);
+    dv.gemv_tr(1.0, lc, &s.v, 0.0);
+    da.gemv_tr(1.0, lc, &s.a, 0.0);
 }
 
 /// Solution of the Stein equation `X = C + Ψᵀ X Ψ` (spectral radius of Ψ < 1) by doubling.
