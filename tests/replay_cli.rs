@@ -428,6 +428,12 @@ fn simulate_and_replay_within(
 ) -> serde_json::Value {
     let rec = simulate_with(dir, setup, seed, extra);
     let v = replay_json(&[rec.to_str().unwrap()]);
+    assert_within(&v, seed, k);
+    v
+}
+
+/// Every parameter of a replay's JSON within `k` standard errors of its truth.
+fn assert_within(v: &serde_json::Value, seed: &str, k: f64) {
     for p in v["parameters"].as_array().unwrap() {
         let (value, truth, se) = (
             p["value"].as_f64().unwrap(),
@@ -440,7 +446,6 @@ fn simulate_and_replay_within(
             p["basis"]
         );
     }
-    v
 }
 
 #[test]
@@ -485,6 +490,28 @@ fn shipped_friction_setup_on_eight_substep_data() {
         assert!((value / 3000.0 - 1.0).abs() < 0.05, "seed {seed}: {value}");
         assert!(se < 60.0, "seed {seed}: friction ± {se} N");
         assert!(friction["crlb"].is_null(), "seed {seed}: {friction}");
+    }
+}
+
+/// The shipped friction setup on data of its own discretisation (1 sub-step) at 10 % noise:
+/// every zero crossing of δ that moves by a sample flips the friction for a whole sample, so
+/// the innovation cost is rough at the scale of the error. Seeds 41 and 45 were 25 and 14
+/// errors off (friction ± 5.5 and ± 3.3 N where the estimates of 50 seeds spread by ~70 N):
+/// the errors came from a secant of ±1 error, which saw single jumps of the cost. The polish
+/// and the errors now use secants wide against the error
+/// (`estimate::prediction_error::{POLISH_SECANT, ERROR_SECANTS}`): 3.05 and 0.06 errors
+/// (friction ± 62 and ± 54 N). The bound is the acceptance's 5 errors less one (the 50-seed
+/// row's worst is 3.2; ACCURACY.md).
+#[test]
+fn own_discretisation_friction_at_ten_percent_noise_states_honest_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let setup = repo("recordings/two-beam-friction.toml");
+    for seed in ["41", "45"] {
+        let rec = simulate_with_noise(dir.path(), &setup, seed, "additive:0.1", &[]);
+        let v = replay_json(&[rec.to_str().unwrap()]);
+        assert_within(&v, seed, 4.0);
+        let friction = v["parameters"][0]["std_error"].as_f64().unwrap();
+        assert!(friction > 20.0, "seed {seed}: friction ± {friction} N");
     }
 }
 
@@ -648,6 +675,18 @@ fn coulomb_friction_on_eight_substep_data() {
 /// `jointid simulate SETUP` (random input, 1 % noise, `seed`, `extra` options) into
 /// `dir/seed-SEED.mcap`.
 fn simulate_with(dir: &Path, setup: &Path, seed: &str, extra: &[&str]) -> std::path::PathBuf {
+    simulate_with_noise(dir, setup, seed, "additive:0.01", extra)
+}
+
+/// `jointid simulate SETUP` (random input, the given noise, seed and extra options) into
+/// `dir`.
+fn simulate_with_noise(
+    dir: &Path,
+    setup: &Path,
+    seed: &str,
+    noise: &str,
+    extra: &[&str],
+) -> std::path::PathBuf {
     let rec = dir.join(format!("seed-{seed}.mcap"));
     let mut args = vec![
         "simulate",
@@ -657,7 +696,7 @@ fn simulate_with(dir: &Path, setup: &Path, seed: &str, extra: &[&str]) -> std::p
         "--scenario",
         "random",
         "--noise",
-        "additive:0.01",
+        noise,
         "--seed",
         seed,
     ];
