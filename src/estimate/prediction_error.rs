@@ -254,8 +254,8 @@ const SECANT: f64 = 0.5;
 /// measured 10 % noise, seeds 1–4, a process-noise force of ~1,000 N: the end point moved by
 /// up to ~1 standard error with a 0.03 % change of that force. The Gauss–Newton step on the
 /// secant Jacobian (±2 errors, [`POLISH_SECANT`]) goes to the zero of the *smoothed*
-/// gradient instead. Steps are
-/// clipped to `POLISH_TRUST` naive errors; it stops below `POLISH_TOL` of them.
+/// gradient instead. Steps are clipped to `POLISH_TRUST` naive errors; it stops below
+/// `POLISH_TOL` of them.
 const POLISH_ITER: usize = 8;
 const POLISH_TRUST: f64 = 2.0;
 const POLISH_TOL: f64 = 0.05;
@@ -265,11 +265,11 @@ const POLISH_TOL: f64 = 0.05;
 /// difference estimates only with a step large against the standard error (Pakes & Pollard
 /// 1989; Newey & McFadden 1994, §7.3); a step of the order of the error sees single jumps.
 /// Measured over 50 seeds (friction setup, data of the model's own discretisation, where
-/// every zero crossing of δ that moves by a sample flips the friction for a whole sample):
-/// ±½ error 76 % coverage at 10 % noise (worst 25 errors), 88 % at 1 % (worst 5.0); ±2
-/// errors (with [`ERROR_SECANTS`]) 92 % (worst 3.2) and 95 % (4.6); ±4 errors 90 % and 96 %,
-/// no better. On continuous data, where the cost is smooth at these scales, the width does
-/// not matter (8 sub-steps, 10 % noise: 96 → 98 %).
+/// every zero crossing of δ that moves by a sample flips the friction for a whole sample),
+/// with the errors of [`ERROR_SECANTS`], coverage at 10 % and 1 % noise (worst errors): ±½
+/// error 92 % (5.0) and 90 % (4.6); ±2 errors 92 % (3.2) and 95 % (4.6); ±4 errors 90 %
+/// (3.2) and 96 % (4.6), no better. On continuous data, where the cost is smooth at these
+/// scales, the width hardly matters (8 sub-steps, 10 % noise: 96 → 98 %).
 const POLISH_SECANT: f64 = 2.0;
 
 /// Half-widths, in naive standard errors, of the two secants the stated errors come from;
@@ -763,9 +763,9 @@ pub fn refine(
     // measured over 50 seeds per row, that floor made every continuous-data row 99–100 %
     // with no estimate beyond 0.9 errors at 1 % noise (the errors 3–4× wider than the
     // spread of the estimates); the sandwich alone gives 92–98 % there (worst 3.5). On
-    // data of the model's own discretisation with friction the sandwich is 1.5× narrower
-    // than the spread (88 % at 1 % noise; the rough cost). ACCURACY.md, "The sandwich is
-    // the error".
+    // data of the model's own discretisation with friction, where the cost is rough, it
+    // needs the wide secants of `ERROR_SECANTS` (92–98 %, worst 4.6). ACCURACY.md, "The
+    // sandwich is the error" and "Secants wide against the error".
     let mut std_errors: Vec<f64> = se.clone();
     // A friction level on its bound 0: the estimate is one-sided and the sandwich's
     // curvature is not its error (a boundary estimate is not normal). Its error is kept at
