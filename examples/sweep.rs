@@ -143,9 +143,10 @@ fn main() -> anyhow::Result<()> {
                                         .and_then(|o| o.prediction_error.as_ref());
                                     let extra = match (pem, p.crlb) {
                                         (Some(rep), _) => format!(
-                                            " sandwich/naive {:.3} cost {:.4}",
+                                            " sandwich/naive {:.3} cost {:.4} sub-steps {}",
                                             rep.sandwich_ratio.get(k).copied().unwrap_or(f64::NAN),
-                                            rep.cost_end
+                                            rep.cost_end,
+                                            rep.substeps
                                         ),
                                         (None, Some(b)) => format!(" bound {b:.3e}"),
                                         _ => String::new(),
