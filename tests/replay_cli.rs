@@ -672,31 +672,6 @@ fn coulomb_friction_on_eight_substep_data() {
     }
 }
 
-/// Coulomb friction on data of the model's own discretisation at 10 % noise, refined by the
-/// free-run output error: its errors come from a secant made as wide as the error it gives,
-/// and on this rough cost a narrow one is a consistent answer too. Seed 29 stated the
-/// friction ± 5.3 N and was 5.3 errors off (the row's worst over 50 seeds); with the errors
-/// taken as the larger of the ±1 and ±8-error secants' (`output_error::SIGN_LAW_WIDE_STEP`)
-/// and scaled to the residuals' noise level ± 7.7 N, 3.6 errors (the bound at the record's
-/// noise estimate 9.6 N).
-#[test]
-fn coulomb_friction_on_its_own_discretisation_states_honest_errors() {
-    let dir = tempfile::tempdir().unwrap();
-    let setup = dir.path().join("coulomb.toml");
-    let text = setup_variant_text(
-        "two-beam-friction.toml",
-        &["sign(v)", "u"],
-        &[3000.0, 3.0e5],
-        1,
-    );
-    std::fs::write(&setup, text).unwrap();
-    let rec = simulate_with_noise(dir.path(), &setup, "29", "additive:0.1", &[]);
-    let v = replay_json(&[rec.to_str().unwrap()]);
-    assert_within(&v, "29", 4.0);
-    let friction = v["parameters"][0]["std_error"].as_f64().unwrap();
-    assert!(friction > 6.0, "friction ± {friction} N");
-}
-
 /// `jointid simulate SETUP` (random input, 1 % noise, `seed`, `extra` options) into
 /// `dir/seed-SEED.mcap`.
 fn simulate_with(dir: &Path, setup: &Path, seed: &str, extra: &[&str]) -> std::path::PathBuf {

@@ -12,8 +12,7 @@
 //! ≥ 0), with steps of 1e-3 of each parameter's scale — or, for a law with a `sign` term, of
 //! one scale (a secant over ±1 standard error, see `SIGN_LAW_STEP`): the outputs of a
 //! sticking and slipping joint are only piecewise smooth in the parameters, so for such laws
-//! the "bound" is the information of that secant (the larger of the ±1 and ±8-error secants',
-//! see `SIGN_LAW_WIDE_STEP`), not a tangent Cramér–Rao bound.
+//! the "bound" is the information of that secant, not a tangent Cramér–Rao bound.
 //!
 //! Why refine at all: the Kalman/least-squares estimate is a two-stage estimate (residual
 //! force, then a regression on estimated states) and does not reach the bound at high noise;
@@ -128,18 +127,6 @@ pub fn residuals(
 /// Levenberg–Marquardt descent on the tangent stopped where the truth had a lower cost by
 /// Δχ² = 15 (seed 3) and 395 (seed 4, friction +7.4 % with a 0.10 % stated error).
 const SIGN_LAW_STEP: f64 = 1.0;
-
-/// Width, in those errors, of the second secant a law with a `sign` term takes its errors
-/// from: each is the larger of the bounds over ±1 and over ±8 errors. The ±1 width is made
-/// self-consistent (the bound it gives is its width), and on data of the model's own
-/// discretisation the cost is rough at that scale, so a secant that spans single jumps is a
-/// consistent small answer: measured (Coulomb `sign(v), u`, 1 sub-step, 10 % noise, 50
-/// seeds) seed 29's friction ± 5.3 N where the typical error was 15 N, 5.3 errors off; row
-/// coverage 90 %, worst 5.3 → 96 %, 2.9 with the wide secant (1 %: 95 %, 3.5 → 98 %, 2.1).
-/// Why wide: the derivative that governs the estimate is that of the expected cost, which a
-/// difference estimates with a step large against the error (Pakes & Pollard 1989);
-/// `prediction_error::ERROR_SECANTS` is the same rule.
-const SIGN_LAW_WIDE_STEP: f64 = 8.0;
 
 /// Sensitivities by finite differences. `scales[j]` is the parameter's scale (a standard
 /// error or a magnitude); the step is `1e-3 × scales[j]` (`SIGN_LAW_STEP × scales[j]` when
@@ -277,8 +264,8 @@ pub fn crlb(
 #[derive(Debug, Clone)]
 pub struct Refined {
     pub values: Vec<f64>,
-    /// Standard errors `(F⁻¹)^{1/2}` scaled by the residuals' level `√(cost/dof)` (so a
-    /// misjudged noise level or unmodelled dynamics widen or narrow them).
+    /// Standard errors `(F⁻¹)^{1/2}` scaled by the normalised cost (so a misjudged noise
+    /// level or unmodelled dynamics widen them).
     pub std_errors: Vec<f64>,
     /// The bound at the refined values, `(F⁻¹)^{1/2}` with the stated noise levels.
     pub crlb: Vec<f64>,
@@ -396,39 +383,14 @@ pub fn refine(
             };
             bound = b2;
         }
-        let wide: Vec<f64> = bound
-            .iter()
-            .map(|x| SIGN_LAW_WIDE_STEP * x.max(1e-12))
-            .collect();
-        if let Some(b8) = sensitivities(
-            setup, model, &p, &wide, excitation, response, sigma, substeps,
-        )
-        .ok()
-        .and_then(|s8| crlb_from_fisher(&normal_equations(&s8).0))
-        {
-            for (a, b) in bound.iter_mut().zip(&b8) {
-                *a = a.max(*b);
-            }
-        }
     }
-    // The errors are the bound at the noise level the residuals show, `√(cost/dof)` of the
-    // level the bound was computed with (the recording's noise estimate or the setup's
-    // `noise_std`): the textbook `s² (JᵀJ)⁻¹` of least squares. It used to scale only up
-    // (a model that does not explain the outputs); but the noise estimate of a record also
-    // overstates the noise, and then every error was too wide — measured (Coulomb
-    // `sign(v), u`, 50 seeds per row, with `SIGN_LAW_WIDE_STEP`): 8- and 64-sub-step data
-    // at 1 % noise 100 % coverage (the errors 1.6–2× the spread of the estimates; the
-    // residual level 0.6 of the estimate); scaled both ways every row measured 87–95 %,
-    // worst 4.0 errors (ACCURACY.md, "Secants wide against the error"). The bound stays at
-    // the noise level it was computed with (the stiffness scan sizes its basin from it), so
-    // an error can be below it: the record is less noisy than its noise estimate said.
     let dof = (nobs - p.len() as f64).max(1.0);
-    let level = (s.cost / dof).sqrt();
+    let ratio = (s.cost / dof).max(1.0).sqrt();
     let accepted = s.cost < cost_start;
     Ok(Refined {
-        std_errors: bound.iter().map(|b| b * level).collect(),
-        crlb: bound,
+        std_errors: bound.iter().map(|b| b * ratio).collect(),
         values: p,
+        crlb: bound,
         report: OutputErrorReport {
             accepted,
             iterations,
