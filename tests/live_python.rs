@@ -63,7 +63,8 @@ fn python_publisher_feeds_jointid_live() {
         }
     }
     let prefix = prefix("py");
-    let live = spawn_live(&prefix, &[]);
+    let session = dir.path().join("session.mcap");
+    let live = spawn_live(&prefix, &["--record", session.to_str().unwrap()]);
     let publish = Command::new(&py)
         .arg(root.join("examples/python/publish.py"))
         .arg("--input")
@@ -84,8 +85,31 @@ fn python_publisher_feeds_jointid_live() {
     );
     assert_no_input_faults(&r);
     assert_eq!(r["ended"], "end-of-stream");
-    // Bit-identical values crossed the language boundary: the final identification equals
-    // the replay of the shipped recording exactly.
+    // Bit-identical values crossed the language boundary: every recorded sample equals the
+    // shipped recording's, bit for bit.
+    let frames = |path: &Path| -> Vec<(u64, Vec<u64>, Vec<u64>)> {
+        let (mut e, mut r) = (Vec::new(), Vec::new());
+        for item in stream_frames(path).unwrap() {
+            match item.unwrap() {
+                (InputTopic::Excitation, f) => e.push(f),
+                (InputTopic::Response, f) => r.push(f),
+            }
+        }
+        e.iter()
+            .zip(&r)
+            .map(|(a, b)| {
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                (a.sample, bits(&a.values), bits(&b.values))
+            })
+            .collect()
+    };
+    assert_eq!(frames(&session), frames(&shipped));
+    // The final identification equals the replay of the recorded session exactly (same code,
+    // same data). It is no longer compared with the replay of the shipped recording: since
+    // the prediction error's wider secants (2026-11-26) the two differ in the last bits of
+    // one parameter (`const(100)` …651 against …653) although the samples are the same bits
+    // (above); the live setup is the one attached at the stream's measured rate, not the
+    // shipped recording's — the likely source, not traced.
     let live_params: Vec<f64> = r["final_identification"]["passes"]
         .as_array()
         .unwrap()
@@ -98,7 +122,7 @@ fn python_publisher_feeds_jointid_live() {
         .collect();
     let replay = app::replay(
         &ReplayRequest {
-            recording: shipped,
+            recording: session,
             ..ReplayRequest::default()
         },
         &mut |_| {},
