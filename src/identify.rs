@@ -1345,7 +1345,7 @@ fn finish_with_output_error(
                 }
                 let rep = &r.report;
                 result.notes.push(format!(
-                    "`sign(u)` friction: refined by prediction error (the output-error cost of this chaotic law is rough and its descent stops in local minima): observer process-noise force {:.4e} N per sample at the connections (tuned by the innovation likelihood of the start values), closed-loop spectral radius {:.6}, normalised innovation cost {:.4} → {:.4}; standard errors by the Newey–West sandwich (lag {} samples; sandwich/naive {})",
+                    "`sign(u)` friction: refined by prediction error (the output-error cost of this chaotic law is rough and its descent stops in local minima): observer process-noise force {:.4e} N per sample at the connections (tuned by the innovation likelihood of the start values), closed-loop spectral radius {:.6}, normalised innovation cost {:.4} → {:.4}; standard errors by the Newey–West sandwich, the larger of its values over secants of ±1 and ±8 errors (lag {} samples; stated/naive {})",
                     rep.force_std,
                     rep.spectral_radius,
                     rep.cost_start,

@@ -299,7 +299,8 @@ pub struct PredictionErrorReport {
     pub cost_end: f64,
     /// Newey–West lag window of the sandwich standard errors, samples.
     pub hac_lag: usize,
-    /// Sandwich standard error over the naive `(JᵀJ)^{-1/2}` one, per parameter.
+    /// Stated (sandwich, the larger over [`ERROR_SECANTS`]) standard error over the naive
+    /// `(JᵀJ)^{-1/2}` one of the ±1-error secant, per parameter.
     pub sandwich_ratio: Vec<f64>,
 }
 
