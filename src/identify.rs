@@ -47,8 +47,9 @@ mod scan;
 
 use pem::{PEM_MAX_COST, pem_undetermined, refine_by_prediction_error};
 use scan::{
-    MAX_SCAN_PROBE_MOVE, SETTLE_ROUNDS, ScanReason, acceleration_only, has_spring_basis,
-    identify_acceleration_only, identify_from_scan, scan_fallback_applies,
+    MAX_SCAN_PROBE_MOVE, SETTLE_ROUNDS, ScanReason, acceleration_only, has_sign_basis,
+    has_spring_basis, identify_acceleration_only, identify_from_scan, restate_final_errors,
+    scan_fallback_applies,
 };
 
 #[derive(Debug, thiserror::Error)]
@@ -1192,6 +1193,11 @@ pub fn identify(
     // The output-error stage starts from the last finished pass, also after a failed one.
     result.initial_state = opts.initial_state.clone();
     finish_with_output_error(setup, &model, data, &opts, &sigma, &mut result);
+    if has_sign_basis(setup)
+        && let Some(sub) = result.output_error.as_ref().map(|r| r.substeps)
+    {
+        restate_final_errors(setup, &model, data, &sigma, &estimated, sub, &mut result);
+    }
     if result.failure.is_some() {
         return Ok(result);
     }

@@ -673,6 +673,29 @@ pub fn initial_state_information(
     (lam, (&acc + acc.transpose()) * 0.5)
 }
 
+/// `N⁺` by the symmetric eigen-decomposition, eigenvalues below `1e-10` of the largest
+/// dropped (as [`pseudo_solve`]). `None` when `N` is zero or not finite.
+pub fn pseudo_inverse(n_mat: &DMatrix<f64>) -> Option<DMatrix<f64>> {
+    if !n_mat.iter().all(|x| x.is_finite()) {
+        return None;
+    }
+    let n_mat = (n_mat + n_mat.transpose()) * 0.5;
+    let eig = nalgebra::SymmetricEigen::try_new(n_mat, f64::EPSILON, 10_000)?;
+    let top = eig.eigenvalues.iter().copied().fold(0.0, f64::max);
+    if !(top.is_finite() && top > 0.0) {
+        return None;
+    }
+    let k = eig.eigenvalues.len();
+    let mut out = DMatrix::<f64>::zeros(k, k);
+    for (j, &ev) in eig.eigenvalues.iter().enumerate() {
+        if ev > 1e-10 * top {
+            let v = eig.eigenvectors.column(j);
+            out.ger(1.0 / ev, &v, &v, 1.0);
+        }
+    }
+    Some(out)
+}
+
 /// `N⁺ r` by the symmetric eigen-decomposition, eigenvalues below `1e-10` of the largest
 /// dropped; with the rank kept. `None` when `N` is zero or not finite.
 pub fn pseudo_solve(n_mat: &DMatrix<f64>, r: &DVector<f64>) -> Option<(DVector<f64>, usize)> {
