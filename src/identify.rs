@@ -1306,15 +1306,7 @@ fn finish_with_output_error(
                     fallback_words(opts)
                 ));
             }
-            Ok((r, _))
-                if let Some(why) = pem_undetermined(
-                    setup,
-                    &r,
-                    &values,
-                    &scales,
-                    opts.initial_state.is_some() && prior.is_none(),
-                ) =>
-            {
+            Ok((r, _)) if let Some(why) = pem_undetermined(setup, &r, &values, &scales) => {
                 result.notes.push(format!(
                     "prediction-error refinement not used: {why}; {}",
                     fallback_words(opts)
