@@ -4,7 +4,7 @@
 //! ```text
 //! cargo run --release --example sweep -- SETUP [--estimator ml|kalman|paper] [--seeds 50]
 //!     [--substeps 1,8,64] [--noise 0.01,0.1] [--steps 2000] [--skip 0] [--rms 2e4] [--verbose]
-//!     [--from 1] [--true-sigma]
+//!     [--from 1] [--true-sigma] [--notes]
 //! ```
 //! The excitation is `jointid simulate`'s random input with RMS `--rms` N (default 2e4, the
 //! command's default: what a user who follows the README gets; a law linear in the state
@@ -124,6 +124,12 @@ fn main() -> anyhow::Result<()> {
                     Ok(id) => match id.final_parameters() {
                         Some(ps) => {
                             answered += 1;
+                            if a.iter().any(|x| x == "--notes") {
+                                println!("  seed {seed} stop: {}", id.stop_reason);
+                                for n in &id.notes {
+                                    println!("  seed {seed} note: {n}");
+                                }
+                            }
                             for (k, p) in ps.iter().enumerate() {
                                 let e =
                                     (p.value - sim.truth[k]) / p.std_error.max(f64::MIN_POSITIVE);

@@ -81,17 +81,22 @@ fn soak_twenty_seconds_without_loss_or_memory_growth() {
         get("sign(u)")
     );
 
-    // Memory: after a 5 s warm-up (buffer full, queues at their working depth), the RSS
-    // stays within 2 MiB of its value then (measured: flat at 16.7 MiB).
+    // Memory: after a 5 s warm-up (buffer full, queues at their working depth) the RSS does
+    // not grow: the highest of the second half of the samples stays within 2 MiB of the
+    // highest of the first half (measured: flat at 16.7 MiB). Halves, not the first sample:
+    // the first window's identification (a debug build, a few seconds) can end after the
+    // warm-up and leave a transient of a few MiB that a leak would not undo (measured on a
+    // loaded machine: 21.9 → 24.6 → 21.4 MiB, then flat).
     let warm: Vec<u64> = rss
         .iter()
         .filter(|(t, _)| *t >= 5.0)
         .map(|(_, k)| *k)
         .collect();
     assert!(warm.len() >= 10, "too few RSS samples: {rss:?}");
-    let (first, max) = (warm[0], *warm.iter().max().unwrap());
+    let (early, late) = warm.split_at(warm.len() / 2);
+    let (early_max, late_max) = (*early.iter().max().unwrap(), *late.iter().max().unwrap());
     assert!(
-        max <= first + 2048,
-        "RSS grew from {first} KiB to {max} KiB after warm-up: {rss:?}"
+        late_max <= early_max + 2048,
+        "RSS grew from {early_max} KiB to {late_max} KiB after warm-up: {rss:?}"
     );
 }

@@ -1029,7 +1029,8 @@ const FINAL_SECANTS: [f64; 2] = [1.0, 8.0];
 ///    errs wide); every channel whose level was estimated (not given as `noise_std`) is
 ///    re-estimated so, both ways — the textbook `s²(JᵀJ)⁻¹` per channel. This replaces the
 ///    refinement's own noise allowance (`√(cost/dof)` when above 1); the empirical misfit
-///    widening and the widenings for other minima stay as factors.
+///    widening (cost > 2) stays a factor, and an error widened to a distance (another minimum,
+///    a rough cost) stays at least that distance.
 /// 2. *Wide secants for `sign` laws.* The outputs of a sticking and slipping joint are
 ///    piecewise smooth in the parameters, so the cost is rough at the scale of the error
 ///    and a secant of ±1 error can span single jumps and give a small, consistent answer
@@ -1164,16 +1165,29 @@ pub(super) fn restate_final_errors(
     let nobs = rows * m as f64;
     let dof = (nobs - values.len() as f64).max(1.0);
     let level = (cost_end * nobs / dof).max(1.0).sqrt();
+    // …and widened by the empirical misfit allowance when the cost is above 2
+    // (`finish_with_output_error`), which stays.
+    let misfit = if cost_end > 2.0 { cost_end.sqrt() } else { 1.0 };
     let mut ratios = Vec::with_capacity(values.len());
     for ((p, b), w) in last.parameters.iter_mut().zip(&bound).zip(&widest) {
         let core = p.crlb.unwrap_or(*b) * level;
-        let factor = if core > 0.0 && core.is_finite() {
-            w / core
+        if !(core > 0.0 && core.is_finite()) {
+            ratios.push(1.0);
+            continue;
+        }
+        ratios.push(w / core);
+        // An error above the refinement's own was widened to a distance (to another
+        // minimum the cost cannot tell apart, or to where the probes of a rough cost moved
+        // the estimate): a distance is not a noise level and stays. Scaling it with the
+        // restated noise (tried) shrank `v` of a misfitting record to 0.003 of its
+        // distance, 85 errors off (ACCURACY.md).
+        let widened_to_distance = p.std_error > core * misfit * (1.0 + 1e-9);
+        let restated = w * misfit;
+        p.std_error = if widened_to_distance {
+            restated.max(p.std_error)
         } else {
-            1.0
+            restated
         };
-        ratios.push(w / core.max(f64::MIN_POSITIVE));
-        p.std_error *= factor;
         p.ci95 = [p.value - 1.96 * p.std_error, p.value + 1.96 * p.std_error];
         p.crlb = Some(*b);
     }
