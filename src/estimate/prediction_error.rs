@@ -92,15 +92,15 @@ impl Predictor {
         self.concentration.is_some()
     }
 
-    /// `r ← r − W H Ψᵏ N⁺ λ(r)` (see [`Predictor::concentrate`]); `false` when not
+    /// `r ← r − W H Ψᵏ N⁺ λ(r)` (see [`Predictor::concentrate`]); nothing when not
     /// concentrated for this length.
-    fn project(&self, r: &mut [f64]) -> bool {
+    fn project(&self, r: &mut [f64]) {
         let m = self.whiten.nrows();
         let Some((len, pinv)) = self.concentration.as_ref() else {
-            return false;
+            return;
         };
         if r.len() != len * m {
-            return false;
+            return;
         }
         let nz = self.psi_t.nrows();
         let (mut lam, mut tmp) = (DVector::zeros(nz), DVector::zeros(nz));
@@ -121,7 +121,6 @@ impl Predictor {
             tmp.gemv(1.0, &psi, &v, 0.0);
             std::mem::swap(&mut v, &mut tmp);
         }
-        true
     }
 
     /// Project the whitened innovation sensitivities `cols` (one column per parameter,

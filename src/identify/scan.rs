@@ -1010,6 +1010,22 @@ pub(super) fn identify_from_scan(
     Ok(result)
 }
 
+/// One parameter's restated error: `restated` (the sandwich at the restated noise levels)
+/// times the misfit allowance `misfit`, where the refinement's error `old` was its own
+/// `core` (bound × noise allowance) times `misfit`. An `old` above that was widened to a
+/// distance (to another minimum the cost cannot tell apart, or to where the probes of a
+/// rough cost moved the estimate): a distance is not a noise level and stays the floor.
+/// Scaling it with the restated noise (tried) shrank `v` of a misfitting record to 0.003 of
+/// its distance, 85 errors off (ACCURACY.md).
+fn restated_error(old: f64, core: f64, misfit: f64, restated: f64) -> f64 {
+    let new = restated * misfit;
+    if old > core * misfit * (1.0 + 1e-9) {
+        new.max(old)
+    } else {
+        new
+    }
+}
+
 /// Secants, in stated standard errors, over which the final errors of a law with a `sign`
 /// term are taken (the larger bound wins); see [`restate_final_errors`].
 const FINAL_SECANTS: [f64; 2] = [1.0, 8.0];
@@ -1027,7 +1043,8 @@ const FINAL_SECANTS: [f64; 2] = [1.0, 8.0];
 ///    rows at 1 % noise covered 100 %). Once the model explains the data, the per-channel
 ///    RMS of `y − ŷ` is the maximum-likelihood noise level (model error included, so it
 ///    errs wide); every channel whose level was estimated (not given as `noise_std`) is
-///    re-estimated so, both ways — the textbook `s²(JᵀJ)⁻¹` per channel. This replaces the
+///    re-estimated so, both ways, and the errors are the sandwich of the fit made with the
+///    first levels at the restated ones (White 1980; see the body). This replaces the
 ///    refinement's own noise allowance (`√(cost/dof)` when above 1); the empirical misfit
 ///    widening (cost > 2) stays a factor, and an error widened to a distance (another minimum,
 ///    a rough cost) stays at least that distance.
@@ -1050,9 +1067,7 @@ pub(super) fn restate_final_errors(
     substeps: usize,
     result: &mut Identification,
 ) {
-    use crate::estimate::output_error::{
-        crlb_from_fisher, residuals, scaled_inverse, sensitivities,
-    };
+    use crate::estimate::output_error::{crlb_from_fisher, scaled_inverse, sensitivities};
     use nalgebra::DMatrix;
     let sign_law = has_sign_basis(setup);
     let Some(report) = result.output_error.as_ref() else {
@@ -1067,15 +1082,27 @@ pub(super) fn restate_final_errors(
     };
     let values: Vec<f64> = last.parameters.iter().map(|p| p.value).collect();
     let scales: Vec<f64> = last.parameters.iter().map(|p| p.std_error).collect();
-    let Ok((r, _)) = residuals(
-        setup,
-        model,
-        &values,
-        &data.excitation,
-        &data.response,
-        sigma,
-        substeps,
-    ) else {
+    let secants: &[f64] = if sign_law { &FINAL_SECANTS } else { &[1.0] };
+    // The sensitivities at every secant, at the noise levels the estimate was fitted with;
+    // the first run's residuals give the restated noise levels.
+    let runs: Vec<_> = secants
+        .iter()
+        .filter_map(|&w| {
+            let at: Vec<f64> = scales.iter().map(|s| w * s).collect();
+            sensitivities(
+                setup,
+                model,
+                &values,
+                &at,
+                &data.excitation,
+                &data.response,
+                sigma,
+                substeps,
+            )
+            .ok()
+        })
+        .collect();
+    let Some(r) = runs.first().map(|x| &x.residual) else {
         return;
     };
     let m = sigma.len();
@@ -1106,24 +1133,10 @@ pub(super) fn restate_final_errors(
         .zip(sigma)
         .map(|(r, s)| (r / s).powi(2))
         .collect();
-    let secants: &[f64] = if sign_law { &FINAL_SECANTS } else { &[1.0] };
     let np = values.len();
     let mut bound: Option<Vec<f64>> = None;
     let mut widest: Option<Vec<f64>> = None;
-    for &w in secants {
-        let at: Vec<f64> = scales.iter().map(|s| w * s).collect();
-        let Ok(sens) = sensitivities(
-            setup,
-            model,
-            &values,
-            &at,
-            &data.excitation,
-            &data.response,
-            sigma,
-            substeps,
-        ) else {
-            continue;
-        };
+    for sens in &runs {
         let mut A = DMatrix::<f64>::zeros(np, np);
         let mut B = DMatrix::<f64>::zeros(np, np);
         let mut F = DMatrix::<f64>::zeros(np, np);
@@ -1176,18 +1189,7 @@ pub(super) fn restate_final_errors(
             continue;
         }
         ratios.push(w / core);
-        // An error above the refinement's own was widened to a distance (to another
-        // minimum the cost cannot tell apart, or to where the probes of a rough cost moved
-        // the estimate): a distance is not a noise level and stays. Scaling it with the
-        // restated noise (tried) shrank `v` of a misfitting record to 0.003 of its
-        // distance, 85 errors off (ACCURACY.md).
-        let widened_to_distance = p.std_error > core * misfit * (1.0 + 1e-9);
-        let restated = w * misfit;
-        p.std_error = if widened_to_distance {
-            restated.max(p.std_error)
-        } else {
-            restated
-        };
+        p.std_error = restated_error(p.std_error, core, misfit, *w);
         p.ci95 = [p.value - 1.96 * p.std_error, p.value + 1.96 * p.std_error];
         p.crlb = Some(*b);
     }
@@ -1238,6 +1240,20 @@ pub(super) fn restate_final_errors(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The refinement's own error (bound × noise allowance × misfit allowance) is replaced
+    /// by the restated one both ways, keeping the misfit allowance; an error widened to a
+    /// distance stays at least that distance (it had been scaled to 0.003 of it).
+    #[test]
+    fn restated_errors_replace_noise_levels_and_keep_distances() {
+        // Own error (core 2 × misfit 3 = 6): replaced, down or up.
+        assert_eq!(restated_error(6.0, 2.0, 3.0, 0.5), 1.5);
+        assert_eq!(restated_error(6.0, 2.0, 3.0, 4.0), 12.0);
+        // Widened to a distance of 40: kept when the restated error is smaller…
+        assert_eq!(restated_error(40.0, 2.0, 3.0, 0.01), 40.0);
+        // …and the restated error wins when it is larger.
+        assert_eq!(restated_error(40.0, 2.0, 3.0, 20.0), 60.0);
+    }
 
     /// Two channels (noise σ = 1 and 2) of constant amplitude `level` and `2 level`: each
     /// sample holds `2 (level² − 1)` noise units of signal energy.
