@@ -164,6 +164,21 @@ impl Predictor {
         Some((delta, lam))
     }
 
+    /// What whitened innovations `r` of a run from rest say about the start: the cost a
+    /// refitted start state would remove (`λᵀδ`, the likelihood-ratio statistic of "at
+    /// rest", χ² under it when the innovations are white) and the rank of its information.
+    pub fn start_state_reduction(&self, r: &[f64]) -> Option<(f64, usize)> {
+        let (lam, sum) = crate::estimate::kalman::initial_state_information(
+            &self.psi_t,
+            &self.wh_t,
+            &self.wh,
+            r,
+        );
+        let (delta, rank) = crate::estimate::kalman::pseudo_solve(&sum, &lam)?;
+        let reduction = lam.dot(&delta);
+        reduction.is_finite().then_some((reduction.max(0.0), rank))
+    }
+
     /// Refit the initial state from whitened innovations `r` (as [`innovations`] returns
     /// them) of a run that started from `self.initial`: the least-squares correction of
     /// the predicted state at the first sample (the innovations are affine in it for the
