@@ -1119,7 +1119,7 @@ fn identify_once(
                         substeps: 0,
                     });
                     format!(
-                        "the record starts in motion although its first sample reads like rest: a start state refitted to the innovations of the prediction error's observer ({} model sub-steps, run from rest at its refined values) removed {:.1} from their whitened cost, beyond the limit {:.1} (χ² of its {} degrees of freedom at 1e-3, × {:.2}, that run's normalised cost), so the identification was run again with the start state estimated (the passes are reported twice); a model whose start differs from the data's passes this test too (measured: records at rest integrated 64 sub-steps per sample at 100 % noise), and its answer with the start state estimated is as good (ACCURACY.md, \"A start in motion seen by the whole record\")",
+                        "the record starts in motion although its first sample reads like rest: a start state refitted to the innovations of the prediction error's observer ({} model sub-steps, run from rest at its refined values) removed {:.1} from their whitened cost, beyond the limit {:.1} (χ² of its {} degrees of freedom at 1e-3, × {:.2}, that run's normalised cost), so the identification was run again with the start state estimated (the passes are reported twice); a model that misfits the structure's free vibration can pass this test too, which is why it is repeated at the likeliest model sub-steps before it is called motion (ACCURACY.md, \"A start in motion seen by the whole record\")",
                         m.substeps, m.reduction, m.limit, m.rank, m.level
                     )
                 }
