@@ -107,6 +107,8 @@ pub enum IdentifyError {
     MotionInRecord {
         reduction: f64,
         limit: f64,
+        rank: usize,
+        level: f64,
         substeps: usize,
     },
     #[error(
@@ -379,7 +381,7 @@ pub struct Identification {
 }
 
 /// A start in motion seen in the innovations of the prediction error's observer (run
-/// from rest at the start values): the whitened cost a refitted start state removes, the
+/// from rest at the refined values): the whitened cost a refitted start state removes, the
 /// limit it passed (the χ² quantile of its `rank` degrees of freedom at 1e-3 times
 /// `level`, the run's normalised cost when above 1) and the model sub-steps of the run.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -1064,6 +1066,8 @@ fn identify_once(
         (Ok(()), None, Some(m)) => Err(IdentifyError::MotionInRecord {
             reduction: m.reduction,
             limit: m.limit,
+            rank: m.rank,
+            level: m.level,
             substeps: m.substeps,
         }),
         (Ok(()), None, None) => Ok(()),
@@ -1110,17 +1114,16 @@ fn identify_once(
                 IdentifyError::MidRecord { sample } => {
                     format!("the window starts mid-record (sample {sample}), in motion")
                 }
-                IdentifyError::MotionInRecord { .. } => {
-                    let m = opts.start_motion.unwrap_or(MotionInRecord {
-                        reduction: f64::NAN,
-                        limit: f64::NAN,
-                        rank: 0,
-                        level: f64::NAN,
-                        substeps: 0,
-                    });
+                IdentifyError::MotionInRecord {
+                    reduction,
+                    limit,
+                    rank,
+                    level,
+                    substeps,
+                } => {
                     format!(
                         "the record starts in motion although its first sample reads like rest: a start state refitted to the innovations of the prediction error's observer ({} model sub-steps, run from rest at its refined values) removed {:.1} from their whitened cost, beyond the limit {:.1} (χ² of its {} degrees of freedom at 1e-3, × {:.2}, that run's normalised cost), so the identification was run again with the start state estimated (the passes are reported twice); a model that misfits the structure's free vibration can pass this test too, which is why it is repeated at the likeliest model sub-steps before it is called motion (ACCURACY.md, \"A start in motion seen by the whole record\")",
-                        m.substeps, m.reduction, m.limit, m.rank, m.level
+                        substeps, reduction, limit, rank, level
                     )
                 }
                 other => other.to_string(),

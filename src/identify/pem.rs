@@ -340,56 +340,52 @@ pub(super) fn refine_by_prediction_error(
         levels.push(last * 2);
     }
     // The levels are independent: tuned on parallel threads, finest first (the longest).
-    // The chosen level's force is then searched again near the coarse one, on the whole
-    // record. `initial`: the start state the runs refit (a record in motion), or rest.
-    let choose = |initial: Option<&[f64]>| -> (usize, f64, (usize, f64)) {
-        let mut order = levels.clone();
-        order.reverse();
-        let mut tuned: Vec<(usize, f64, f64)> = crate::par::map(&order, |&l| {
-            let (f, ll) = tune_pem_force(
-                setup,
-                model,
-                choice,
-                sigma,
-                start,
-                l,
-                initial,
-                ForceSearch::Coarse,
-            );
-            (l, f, ll)
-        })
-        .into_iter()
-        .filter(|(_, _, ll)| ll.is_finite())
-        .collect();
-        tuned.sort_by_key(|t| t.0);
-        let best = tuned.iter().map(|t| t.2).fold(f64::NEG_INFINITY, f64::max);
-        let likeliest = tuned
-            .iter()
-            .find(|t| t.2 == best)
-            .map_or((opts.substeps, 0.0), |t| (t.0, t.1));
-        let (sub, force_std, _) = tuned
-            .iter()
-            .copied()
-            .find(|t| t.2 >= best - significant)
-            .unwrap_or((opts.substeps, 0.0, f64::NEG_INFINITY));
-        let force_std = if tuned.iter().any(|t| t.0 == sub) {
-            tune_pem_force(
-                setup,
-                model,
-                data,
-                sigma,
-                start,
-                sub,
-                initial,
-                ForceSearch::Near(force_std),
-            )
-            .0
-        } else {
-            force_std
-        };
-        (sub, force_std, likeliest)
+    let mut order = levels.clone();
+    order.reverse();
+    let mut tuned: Vec<(usize, f64, f64)> = crate::par::map(&order, |&l| {
+        let (f, ll) = tune_pem_force(
+            setup,
+            model,
+            choice,
+            sigma,
+            start,
+            l,
+            opts.initial_state.as_deref(),
+            ForceSearch::Coarse,
+        );
+        (l, f, ll)
+    })
+    .into_iter()
+    .filter(|(_, _, ll)| ll.is_finite())
+    .collect();
+    tuned.sort_by_key(|t| t.0);
+    let best = tuned.iter().map(|t| t.2).fold(f64::NEG_INFINITY, f64::max);
+    // The likeliest level and its coarse force (for the start-motion test below).
+    let likeliest = tuned
+        .iter()
+        .find(|t| t.2 == best)
+        .map_or((opts.substeps, 0.0), |t| (t.0, t.1));
+    let (sub, force_std, _) = tuned
+        .iter()
+        .copied()
+        .find(|t| t.2 >= best - significant)
+        .unwrap_or((opts.substeps, 0.0, f64::NEG_INFINITY));
+    // The chosen level's force, searched again near the coarse one (on the whole record).
+    let force_std = if tuned.iter().any(|t| t.0 == sub) {
+        tune_pem_force(
+            setup,
+            model,
+            data,
+            sigma,
+            start,
+            sub,
+            opts.initial_state.as_deref(),
+            ForceSearch::Near(force_std),
+        )
+        .0
+    } else {
+        force_std
     };
-    let (sub, force_std, likeliest) = choose(opts.initial_state.as_deref());
     let r = refine(
         setup,
         model,
