@@ -802,15 +802,46 @@ pub fn solve_stein(psi: &DMatrix<f64>, c: &DMatrix<f64>) -> DMatrix<f64> {
     (&x + x.transpose()) * 0.5
 }
 
+/// Relative update of [`solve_filter_dare`] below which a growing update is round-off —
+/// once the updates have come down from their peak by [`DARE_DESCENT`]: in its first steps
+/// the doubling's updates grow from tiny ones (the iterate starts at `Q`), and a stop there
+/// (tried) returned a `P` that was hardly more than `Q` (noise-free data: friction −2,600 %).
+const DARE_ROUND_OFF: f64 = 1e-9;
+const DARE_DESCENT: f64 = 1e4;
+
+/// Cap on the doubling steps (each doubles the horizon: 80 is far beyond any memory).
+const DARE_MAX_STEPS: usize = 80;
+
 /// Steady-state a-priori covariance of the filter DARE
 /// `P = A P Aᵀ − A P Hᵀ (H P Hᵀ + V)⁻¹ H P Aᵀ + Q`, by the structure-preserving doubling
 /// algorithm (Chu, Fan & Lin 2005) applied to the dual control DARE.
+///
+/// Stops when the update is below 1e-14 of the solution, or when, converging, it has stopped
+/// shrinking below [`DARE_ROUND_OFF`] of it — then the iterate before that update is
+/// returned. Why:
+/// with an undamped structure `A` has modes on the unit circle, `A^(2^k)` does not decay,
+/// and once the iteration has converged its round-off doubles with every doubling step.
+/// Measured on the shipped friction replay (2026-11-27): 95 of 246 solves never met the
+/// 1e-14 test; they had converged to ~5e-13 in 12 iterations, then the update grew
+/// 2× per iteration to 1e-7–1e-6 of the solution and they stopped at the 80-iteration cap
+/// with that error (and ~40 % of all iterations spent on it). The Kalman tuning's time went
+/// down by a third.
 pub fn solve_filter_dare(
     A: &DMatrix<f64>,
     H: &DMatrix<f64>,
     Q: &DMatrix<f64>,
     V: &DMatrix<f64>,
 ) -> DMatrix<f64> {
+    filter_dare_doubling(A, H, Q, V).0
+}
+
+/// [`solve_filter_dare`] and the number of doubling steps it took.
+fn filter_dare_doubling(
+    A: &DMatrix<f64>,
+    H: &DMatrix<f64>,
+    Q: &DMatrix<f64>,
+    V: &DMatrix<f64>,
+) -> (DMatrix<f64>, usize) {
     let nz = A.nrows();
     let vinv = V
         .clone()
@@ -820,7 +851,10 @@ pub fn solve_filter_dare(
     let mut Gk = H.transpose() * vinv * H;
     let mut Hk = Q.clone();
     let id = DMatrix::<f64>::identity(nz, nz);
-    for _ in 0..80 {
+    let (mut last_change, mut peak_change) = (f64::INFINITY, 0.0f64);
+    let mut steps = 0;
+    for _ in 0..DARE_MAX_STEPS {
+        steps += 1;
         let w = &id + &Gk * &Hk;
         let Some(lu) = Some(w.lu()) else { break };
         let Some(wa) = lu.solve(&Ak) else { break };
@@ -830,6 +864,14 @@ pub fn solve_filter_dare(
         let h_next = &Hk + Ak.transpose() * &Hk * &wa;
         let change = (&h_next - &Hk).amax();
         let scale = h_next.amax().max(f64::MIN_POSITIVE);
+        if change >= last_change
+            && last_change <= DARE_ROUND_OFF * scale
+            && peak_change >= DARE_DESCENT * last_change
+        {
+            break;
+        }
+        last_change = change;
+        peak_change = peak_change.max(change);
         Ak = a_next;
         Gk = (&g_next + g_next.transpose()) * 0.5;
         Hk = (&h_next + h_next.transpose()) * 0.5;
@@ -837,7 +879,7 @@ pub fn solve_filter_dare(
             break;
         }
     }
-    Hk
+    (Hk, steps)
 }
 
 #[cfg(test)]
@@ -1010,6 +1052,72 @@ dt_s = 0.001
         // A Jordan block with eigenvalue 1 (the random walk's structure): radius 1.
         let j = DMatrix::from_row_slice(2, 2, &[1.0, 1.0, 0.0, 1.0]);
         assert!((spectral_radius_by_powers(&j) - 1.0).abs() < 1e-4);
+    }
+
+    /// The filter model of the paper's undamped two-beam problem (Newmark modes on the unit
+    /// circle, a random-walk force at the joint) with the shipped recording's noise:
+    /// the doubling stops before its cap and its answer is a fixed point of the Riccati step
+    /// to round-off. Before it stopped at its round-off floor it ran on to the 80-step cap
+    /// on some of them, its update doubling every step from ~1e-12 to ~1e-6 of the answer.
+    #[test]
+    fn doubling_stops_at_its_round_off_floor_on_an_undamped_model() {
+        use crate::integrate::Stepper;
+        use crate::setup::Setup;
+        let toml = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/recordings/two-beam-friction.toml"
+        ))
+        .unwrap();
+        let setup = Setup::from_toml(&toml, "two-beam-friction.toml").unwrap();
+        let model = crate::model::Model::assemble(&setup).unwrap();
+        let lin = model.with_connection_terms(&setup, &[3000.0, 3.0e5, 0.0, 0.0]);
+        let mut stepper = Stepper::new(&lin, setup.dt_s, 1, setup.newmark).unwrap();
+        let (phi, gamma) = (stepper.transition(), stepper.force_response());
+        let mut all = lin.clone();
+        let n = lin.n();
+        all.Lc = DMatrix::identity(n, n);
+        let gamma_all = Stepper::new(&all, setup.dt_s, 1, setup.newmark)
+            .unwrap()
+            .force_response();
+        let nz = 3 * n + 1;
+        let mut A = DMatrix::zeros(nz, nz);
+        A.view_mut((0, 0), (3 * n, 3 * n)).copy_from(&phi);
+        A.view_mut((0, 3 * n), (3 * n, 1)).copy_from(&gamma);
+        A[(3 * n, 3 * n)] = 1.0;
+        let mut B = DMatrix::zeros(nz, 1);
+        B.view_mut((0, 0), (3 * n, 1)).copy_from(&gamma);
+        B[(3 * n, 0)] = 1.0;
+        let stations = Stations::from_model(&lin);
+        let m = stations.m();
+        let H = DMatrix::from_fn(m, nz, |i, j| {
+            f64::from(u8::from(stations.state_index(i, n) == j))
+        });
+        // The shipped friction recording's channel variances (displacement, velocity at
+        // nodes 1, 3, 5, 7, 9, 11) and force walks around those its tuning chose.
+        let variances = [
+            3.2e-4, 7.3e4, 1.1e-4, 2.2e4, 1.8e-5, 1.5e3, 8.8e-6, 1.7e3, 6.0e-5, 2.2e4, 2.1e-4,
+            7.1e4,
+        ];
+        assert_eq!(variances.len(), m);
+        let V = DMatrix::from_diagonal(&DVector::from_row_slice(&variances));
+        let scale = force_scale_of(&lin);
+        for walk in [2.0e4, 3.4e4, 1.056e5, 1.065e5, 1.096e5, 1.75e5, 3.0e5] {
+            let mut Q = &B * B.transpose() * walk * walk;
+            let qx = &gamma_all * gamma_all.transpose() * (MODEL_ERROR_RELATIVE * scale).powi(2);
+            let mut qv = Q.view_mut((0, 0), (3 * n, 3 * n));
+            qv += qx;
+            let (P, steps) = filter_dare_doubling(&A, &H, &Q, &V);
+            assert!(steps < DARE_MAX_STEPS, "walk {walk:e}: {steps} steps");
+            // One plain Riccati step from the answer moves it by round-off only.
+            let S = &H * &P * H.transpose() + &V;
+            let K = &A * &P * H.transpose() * S.try_inverse().unwrap();
+            let next = &A * &P * A.transpose() - &K * &H * &P * A.transpose() + &Q;
+            let residual = (&next - &P).amax() / P.amax();
+            assert!(
+                residual <= 1e-6,
+                "walk {walk:e}: Riccati residual {residual:e}"
+            );
+        }
     }
 
     #[test]
