@@ -259,3 +259,80 @@ fn a_cut_record_at_full_noise_is_seen_in_motion_by_its_innovations() {
         }
     }
 }
+
+/// A record at rest that the start-at-rest test flags at the kept model level and clears at
+/// the likeliest (the shipped friction setup, 64-sub-step data, 100 % noise, 2,000 samples,
+/// seed 4). At this noise the level kept is the coarsest within 3 standard deviations of
+/// the likeliest (a few sub-steps coarser); its slight frequency error grows as a beat that a
+/// start state's free vibration also fits, so the test at that level passes its limit
+/// (measured 3.1× it; 13 of 16 such records passed at 0.5–3.4×). Tested again at the
+/// likeliest level it reads 0.3× the limit, and the record is identified as at rest: no
+/// second run, every parameter within 3 errors. Before the second test (2026-11-27) such
+/// records were identified again as in motion (one of 16 refused).
+#[test]
+fn a_record_at_rest_flagged_at_the_kept_level_is_cleared_at_the_likeliest() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("recordings")
+        .join("two-beam-friction.toml");
+    let setup = Setup::from_file(&path).unwrap();
+    let steps = 2000;
+    let sim = simulate(
+        &setup,
+        &SimulateOptions {
+            scenario: Scenario::Random { rms: 2e4 },
+            steps,
+            dt_s: setup.dt_s,
+            substeps: 64,
+            noise: Noise::Additive(1.0),
+            seed: 4,
+        },
+    )
+    .unwrap();
+    let data = TestData {
+        samples: (0..steps as u64).collect(),
+        t_ns: vec![0; steps],
+        excitation: sim.excitation,
+        response: sim.response,
+    };
+    let opts = IdentifyOptions::from_setup(&setup);
+    let id = identify(
+        &setup,
+        &data,
+        &opts,
+        Some(&sim.truth),
+        &mut |_| {},
+        &mut |_, _| {},
+    )
+    .unwrap();
+    assert!(id.failure.is_none(), "{:?}", id.failure);
+    assert!(id.motion_in_record.is_none(), "{:?}", id.notes);
+    let pem = id
+        .output_error
+        .as_ref()
+        .and_then(|o| o.prediction_error.as_ref())
+        .expect("refined by prediction error");
+    let tests = &pem.start_at_rest_tests;
+    assert_eq!(tests.len(), 2, "{tests:?}");
+    let (kept, likeliest) = (tests[0], tests[1]);
+    assert_eq!(kept.substeps, pem.substeps);
+    assert!(likeliest.substeps > kept.substeps, "{tests:?}");
+    assert!(
+        kept.statistic > 1.5 * kept.limit,
+        "flagged at the kept level: {tests:?}"
+    );
+    assert!(
+        likeliest.statistic < 0.6 * likeliest.limit,
+        "cleared at the likeliest: {tests:?}"
+    );
+    for p in id.final_parameters().unwrap() {
+        let t = p.truth.unwrap();
+        let off = (p.value - t) / p.std_error;
+        assert!(
+            off.abs() < 3.0,
+            "{} = {} ± {}, truth {t}: {off:.1} errors",
+            p.basis,
+            p.value,
+            p.std_error
+        );
+    }
+}

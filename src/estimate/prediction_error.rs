@@ -387,6 +387,21 @@ pub struct PredictionErrorReport {
     /// Stated (sandwich, the larger over [`ERROR_SECANTS`]) standard error over the naive
     /// `(JᵀJ)^{-1/2}` one of the ±1-error secant, per parameter.
     pub sandwich_ratio: Vec<f64>,
+    /// The innovation tests of "the record starts at rest" run after the refinement (at the
+    /// kept level, and again at the likeliest when the first passed its limit); empty for a
+    /// record identified as in motion.
+    pub start_at_rest_tests: Vec<StartAtRestTest>,
+}
+
+/// One likelihood-ratio test of a start at rest on the innovations: the cost a refitted start
+/// state removes (`statistic`), against `limit` (the χ² quantile of `rank` degrees of freedom
+/// at 1e-3, times the run's normalised cost when above 1), with `substeps` model sub-steps.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct StartAtRestTest {
+    pub substeps: usize,
+    pub statistic: f64,
+    pub limit: f64,
+    pub rank: usize,
 }
 
 /// Result of [`refine`].
@@ -915,6 +930,7 @@ pub fn refine(
             cost_end: J.cost / nobs,
             hac_lag: lag,
             sandwich_ratio: se.iter().zip(&naive).map(|(a, b)| a / b).collect(),
+            start_at_rest_tests: Vec::new(),
         },
         values: p,
         std_errors,

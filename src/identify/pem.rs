@@ -241,6 +241,7 @@ pub(super) enum PemStage {
 /// at its first sample (Σ² 6–59 over 12 channels against a limit of 68, 100 of 100
 /// records), and the undamped structure carries the start's free vibration through the
 /// whole record (measured: `v` 19 % coverage, 11.5 errors off; ACCURACY.md).
+#[allow(clippy::too_many_arguments)]
 fn start_motion(
     setup: &Setup,
     model: &Model,
@@ -249,6 +250,7 @@ fn start_motion(
     params: &[f64],
     substeps: usize,
     force_std: f64,
+    tests: &mut Vec<crate::estimate::prediction_error::StartAtRestTest>,
 ) -> Result<Option<super::MotionInRecord>, crate::simulate::SimulateError> {
     use crate::estimate::prediction_error::{innovations, predictor};
     let pred = predictor(setup, model, params, sigma, substeps, force_std)?;
@@ -267,6 +269,12 @@ fn start_motion(
     let nobs = r0.len().max(1) as f64;
     let level = (cost / nobs).max(1.0);
     let limit = level * super::chi2_upper_quantile(rank, START_MOTION_Z);
+    tests.push(crate::estimate::prediction_error::StartAtRestTest {
+        substeps,
+        statistic: reduction,
+        limit,
+        rank,
+    });
     if std::env::var_os("JOINTID_MOTION_DEBUG").is_some() {
         eprintln!(
             "start motion: reduction {reduction:.1} rank {rank} level {level:.3} limit {limit:.1} ratio {:.3}",
@@ -386,7 +394,7 @@ pub(super) fn refine_by_prediction_error(
     } else {
         force_std
     };
-    let r = refine(
+    let mut r = refine(
         setup,
         model,
         start,
@@ -409,6 +417,7 @@ pub(super) fn refine_by_prediction_error(
     // (measured at rest, 64-sub-step data at 100 % noise: flagged at the kept 16 or 32
     // sub-steps, ACCURACY.md).
     if opts.initial_state.is_none() {
+        let mut tests = Vec::new();
         let mut motion = start_motion(
             setup,
             model,
@@ -417,6 +426,7 @@ pub(super) fn refine_by_prediction_error(
             &r.values,
             sub,
             force_std.max(floor),
+            &mut tests,
         )?;
         if motion.is_some() && likeliest.0 != sub {
             motion = start_motion(
@@ -427,11 +437,13 @@ pub(super) fn refine_by_prediction_error(
                 &r.values,
                 likeliest.0,
                 likeliest.1.max(floor),
+                &mut tests,
             )?;
         }
         if let Some(m) = motion {
             return Ok(PemStage::InMotion(m));
         }
+        r.report.start_at_rest_tests = tests;
     }
     Ok(PemStage::Refined(r, sub))
 }
@@ -457,6 +469,7 @@ mod tests {
                 cost_end: 0.97,
                 hac_lag: 6,
                 sandwich_ratio: vec![1.0, 1.0],
+                start_at_rest_tests: Vec::new(),
             },
         }
     }
