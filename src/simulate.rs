@@ -340,13 +340,23 @@ impl TruthSystem {
 
     /// Smooth part of the law and its derivatives w.r.t. (δ, δ̇, δ̈).
     fn smooth(&self, c: usize, d: f64, dv: f64, da: f64) -> (f64, f64, f64, f64) {
+        let (f, fd, fv, fa, _) = self.smooth_and_size(c, d, dv, da);
+        (f, fd, fv, fa)
+    }
+
+    /// [`Self::smooth`] and the largest term `|pⱼ bⱼ(δ, δ̇, δ̈)|` of the whole law (sign terms
+    /// included): the size the force solve's round-off is relative to, in the same pass.
+    fn smooth_and_size(&self, c: usize, d: f64, dv: f64, da: f64) -> (f64, f64, f64, f64, f64) {
         let (basis, p, _) = &self.blocks[c];
         let mut f = 0.0;
         let (mut fd, mut fv, mut fa) = (0.0, 0.0, 0.0);
+        let mut size = 0.0f64;
         for (b, &pj) in basis.iter().zip(p) {
+            let term = pj * b.eval(d, dv, da);
+            size = size.max(term.abs());
             match b {
                 Basis::SignU | Basis::SignV => {}
-                _ => f += pj * b.eval(d, dv, da),
+                _ => f += term,
             }
             match b {
                 Basis::U => fd += pj,
@@ -357,7 +367,7 @@ impl TruthSystem {
                 _ => {}
             }
         }
-        (f, fd, fv, fa)
+        (f, fd, fv, fa, size)
     }
 
     /// Solve the connection forces for one sub-step given the free predictions
@@ -406,20 +416,13 @@ impl TruthSystem {
                             }
                         }
                         st => {
-                            let (phi, fd, fv, fa) = self.smooth(c, dc, dvc, dac);
+                            let (phi, fd, fv, fa, size) = self.smooth_and_size(c, dc, dvc, dac);
                             let fric = match (st, &self.blocks[c].2) {
                                 (Status::Slip(s), Some(t)) => s * t.level,
                                 _ => 0.0,
                             };
                             self.work.e[c] = self.work.f[c] - phi - fric;
-                            mag = mag.max(fric.abs()).max(
-                                self.blocks[c]
-                                    .0
-                                    .iter()
-                                    .zip(&self.blocks[c].1)
-                                    .map(|(b, p)| (p * b.eval(dc, dvc, dac)).abs())
-                                    .fold(0.0, f64::max),
-                            );
+                            mag = mag.max(fric.abs()).max(size);
                             for m in 0..q {
                                 let dd = if c == m { 1.0 } else { 0.0 };
                                 self.work.j[(c, m)] =
@@ -580,20 +583,15 @@ impl TruthSystem {
         map.free.gemv(1.0, &map.free_state, &map.x, 0.0);
         map.free.gemv(1.0, &map.free_p0, &map.p0, 1.0);
         map.free.gemv(1.0, &map.free_p1, &map.p1, 1.0);
-        let rows = map.impulse.nrows();
         for j in 0..steps {
             for c in 0..3 * q {
-                // The earlier sub-steps' forces: impulse k = j − i from sub-step i.
+                // The earlier sub-steps' forces: impulse k = j − i from sub-step i, as one
+                // contiguous dot product per connection (impulses by k, forces reversed).
                 let mut v = map.free[3 * q * j + c];
-                {
-                    let imp = map.impulse.as_slice();
-                    let f = map.forces.as_slice();
-                    for k in 1..=j {
-                        let r = 3 * q * (k - 1) + c;
-                        for m in 0..q {
-                            v += imp[m * rows + r] * f[q * (j - k) + m];
-                        }
-                    }
+                for m in 0..q {
+                    let imp = &map.impulse_by_lag[c * q + m][..j];
+                    let f = &map.forces_reversed[m][steps - j..];
+                    v = imp.iter().zip(f).fold(v, |acc, (a, b)| acc + a * b);
                 }
                 let w = &mut self.work;
                 match c / q {
@@ -605,6 +603,7 @@ impl TruthSystem {
             self.solve_forces()?;
             for m in 0..q {
                 map.forces[q * j + m] = self.work.f[m];
+                map.forces_reversed[m][steps - 1 - j] = self.work.f[m];
             }
         }
         map.next.gemv(1.0, &map.phi, &map.x, 0.0);
@@ -1063,8 +1062,9 @@ struct ComposedSubsteps {
     /// (linearly interpolated over the sub-steps).
     free_p0: DMatrix<f64>,
     free_p1: DMatrix<f64>,
-    /// `Lc₃ᵀ Tᵏ G_f`, k = 1…L−1, stacked (`3q × q` each).
-    impulse: DMatrix<f64>,
+    /// `Lc₃ᵀ Tᵏ G_f`, k = 1…L−1: entry `(c, m)` of each as one vector over k
+    /// (`impulse_by_lag[c q + m][k − 1]`), so the force history is a contiguous dot product.
+    impulse_by_lag: Vec<Vec<f64>>,
     /// `T^L`, and the excitation's part of the end state.
     phi: DMatrix<f64>,
     g0: DMatrix<f64>,
@@ -1074,6 +1074,8 @@ struct ComposedSubsteps {
     /// Work: the free predictions, the forces of the sample's sub-steps, state vectors.
     free: DVector<f64>,
     forces: DVector<f64>,
+    /// The sample's forces per connection, latest sub-step first (`[m][L − 1 − j]`).
+    forces_reversed: Vec<Vec<f64>>,
     x: DVector<f64>,
     next: DVector<f64>,
     p0: DVector<f64>,
@@ -1124,7 +1126,7 @@ impl ComposedSubsteps {
         let mut free_state = DMatrix::zeros(3 * q * L, 3 * n);
         let mut free_p0 = DMatrix::zeros(3 * q * L, ne);
         let mut free_p1 = DMatrix::zeros(3 * q * L, ne);
-        let mut impulse = DMatrix::zeros(3 * q * L.saturating_sub(1), q);
+        let mut impulse_by_lag = vec![vec![0.0; L.saturating_sub(1)]; 3 * q * q];
         let mut s = lc3t.clone();
         let mut g0 = DMatrix::<f64>::zeros(3 * n, ne);
         let mut g1 = DMatrix::<f64>::zeros(3 * n, ne);
@@ -1142,7 +1144,12 @@ impl ComposedSubsteps {
                 .view_mut(rows, (3 * q, ne))
                 .copy_from(&(&lc3t * &g1));
             if j < L {
-                impulse.view_mut(rows, (3 * q, q)).copy_from(&(&s * &Gf));
+                let imp = &s * &Gf;
+                for c in 0..3 * q {
+                    for m in 0..q {
+                        impulse_by_lag[c * q + m][j - 1] = imp[(c, m)];
+                    }
+                }
             }
         }
         let mut force_to_end = DMatrix::zeros(3 * n, q * L);
@@ -1173,13 +1180,14 @@ impl ComposedSubsteps {
             free_state,
             free_p0,
             free_p1,
-            impulse,
+            impulse_by_lag,
             phi,
             g0,
             g1,
             force_to_end,
             free: DVector::zeros(3 * q * L),
             forces: DVector::zeros(q * L),
+            forces_reversed: vec![vec![0.0; L]; q],
             x: DVector::zeros(3 * n),
             next: DVector::zeros(3 * n),
             p0: DVector::zeros(ne),
