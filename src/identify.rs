@@ -641,7 +641,7 @@ pub fn tune_kalman(
     estimated: &[bool],
     data: &TestData,
 ) -> Result<KalmanTuning, EstimateError> {
-    use crate::estimate::tuning::maximise_log;
+    use crate::estimate::tuning::maximise_log_parallel as maximise_log;
     let with_terms = model.with_connection_terms(setup, params);
     let scale = crate::estimate::kalman::force_scale_of(&with_terms);
     let mut model_error = opts
@@ -657,12 +657,12 @@ pub fn tune_kalman(
     };
     let mut noise_scale = 1.0;
     let sig = scaled(noise_scale);
-    let (mut walk, mut ll, n) = maximise_log(1e-6 * scale, 1e2 * scale, 9, 12, &mut |w| {
+    let (mut walk, mut ll, n) = maximise_log(1e-6 * scale, 1e2 * scale, 9, 12, &|w| {
         kalman_log_likelihood(setup, &with_terms, params, opts, &sig, data, w, model_error)
     });
     runs += n;
     if opts.tune_noise_scale && estimated.iter().any(|&e| e) {
-        let (s, l, n) = maximise_log(1e-8, 1e1, 10, 10, &mut |s| {
+        let (s, l, n) = maximise_log(1e-8, 1e1, 10, 10, &|s| {
             kalman_log_likelihood(
                 setup,
                 &with_terms,
@@ -679,7 +679,7 @@ pub fn tune_kalman(
             noise_scale = s;
             ll = l;
             let sig = scaled(noise_scale);
-            let (w, l, n) = maximise_log(walk / 30.0, walk * 30.0, 5, 10, &mut |w| {
+            let (w, l, n) = maximise_log(walk / 30.0, walk * 30.0, 5, 10, &|w| {
                 kalman_log_likelihood(setup, &with_terms, params, opts, &sig, data, w, model_error)
             });
             runs += n;
@@ -691,7 +691,7 @@ pub fn tune_kalman(
     }
     if opts.model_error_std.is_none() && opts.tune_model_error {
         let sig = scaled(noise_scale);
-        let (e, l, n) = maximise_log(1e-9 * scale, 1e-1 * scale, 9, 8, &mut |e| {
+        let (e, l, n) = maximise_log(1e-9 * scale, 1e-1 * scale, 9, 8, &|e| {
             kalman_log_likelihood(setup, &with_terms, params, opts, &sig, data, walk, e)
         });
         runs += n;
@@ -699,19 +699,18 @@ pub fn tune_kalman(
             model_error = e;
             ll = l;
             if opts.tune_noise_scale && estimated.iter().any(|&e| e) {
-                let (s, l, n) =
-                    maximise_log(noise_scale / 30.0, noise_scale * 30.0, 5, 8, &mut |s| {
-                        kalman_log_likelihood(
-                            setup,
-                            &with_terms,
-                            params,
-                            opts,
-                            &scaled(s),
-                            data,
-                            walk,
-                            model_error,
-                        )
-                    });
+                let (s, l, n) = maximise_log(noise_scale / 30.0, noise_scale * 30.0, 5, 8, &|s| {
+                    kalman_log_likelihood(
+                        setup,
+                        &with_terms,
+                        params,
+                        opts,
+                        &scaled(s),
+                        data,
+                        walk,
+                        model_error,
+                    )
+                });
                 runs += n;
                 if l > ll {
                     noise_scale = s;
@@ -719,7 +718,7 @@ pub fn tune_kalman(
                 }
             }
             let sig = scaled(noise_scale);
-            let (w, l, n) = maximise_log(walk / 30.0, walk * 30.0, 5, 8, &mut |w| {
+            let (w, l, n) = maximise_log(walk / 30.0, walk * 30.0, 5, 8, &|w| {
                 kalman_log_likelihood(setup, &with_terms, params, opts, &sig, data, w, model_error)
             });
             runs += n;

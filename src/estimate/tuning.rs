@@ -93,19 +93,48 @@ pub fn maximise_log(
     refine: usize,
     f: &mut dyn FnMut(f64) -> f64,
 ) -> (f64, f64, usize) {
+    maximise_log_batched(lo, hi, grid, refine, &mut |xs: &[f64]| {
+        xs.iter().map(|&x| f(x)).collect()
+    })
+}
+
+/// [`maximise_log`] with the grid points and the first golden pair evaluated on parallel
+/// threads ([`crate::par::map`]): the same points, compared in the same order, so the same
+/// answer. Why: the Kalman filter's likelihood tuning evaluates its grids one filter run
+/// after another while the second core idles (a quarter of the shipped replay's time).
+pub fn maximise_log_parallel(
+    lo: f64,
+    hi: f64,
+    grid: usize,
+    refine: usize,
+    f: &(dyn Fn(f64) -> f64 + Sync),
+) -> (f64, f64, usize) {
+    maximise_log_batched(lo, hi, grid, refine, &mut |xs: &[f64]| {
+        crate::par::map(xs, |&x| f(x))
+    })
+}
+
+/// [`maximise_log`] with `eval` evaluating a batch of points `x` (not log).
+fn maximise_log_batched(
+    lo: f64,
+    hi: f64,
+    grid: usize,
+    refine: usize,
+    eval: &mut dyn FnMut(&[f64]) -> Vec<f64>,
+) -> (f64, f64, usize) {
     let (a, b) = (lo.ln(), hi.ln());
     let grid = grid.max(2);
     let step = (b - a) / (grid - 1) as f64;
-    let mut eval = |t: f64| {
-        let v = f(t.exp());
-        if v.is_finite() { v } else { f64::NEG_INFINITY }
+    let finite = |v: f64| if v.is_finite() { v } else { f64::NEG_INFINITY };
+    let mut eval_logs = |ts: &[f64]| -> Vec<f64> {
+        let xs: Vec<f64> = ts.iter().map(|t| t.exp()).collect();
+        eval(&xs).into_iter().map(finite).collect()
     };
     let mut best = (a, f64::NEG_INFINITY);
-    for i in 0..grid {
-        let t = a + step * i as f64;
-        let v = eval(t);
+    let ts: Vec<f64> = (0..grid).map(|i| a + step * i as f64).collect();
+    for (t, v) in ts.iter().zip(eval_logs(&ts)) {
         if v > best.1 {
-            best = (t, v);
+            best = (*t, v);
         }
     }
     let mut count = grid;
@@ -114,8 +143,8 @@ pub fn maximise_log(
     let (mut l, mut r) = (best.0 - step, best.0 + step);
     let mut x1 = r - g * (r - l);
     let mut x2 = l + g * (r - l);
-    let mut f1 = eval(x1);
-    let mut f2 = eval(x2);
+    let pair = eval_logs(&[x1, x2]);
+    let (mut f1, mut f2) = (pair[0], pair[1]);
     count += 2;
     for _ in 0..refine.saturating_sub(2) {
         if f1 >= f2 {
@@ -123,13 +152,13 @@ pub fn maximise_log(
             x2 = x1;
             f2 = f1;
             x1 = r - g * (r - l);
-            f1 = eval(x1);
+            f1 = eval_logs(&[x1])[0];
         } else {
             l = x1;
             x1 = x2;
             f1 = f2;
             x2 = l + g * (r - l);
-            f2 = eval(x2);
+            f2 = eval_logs(&[x2])[0];
         }
         count += 1;
     }
