@@ -1049,8 +1049,9 @@ impl LinearSampleMap {
 /// numbers). So over a sample the free deformations of all `L` sub-steps are one
 /// `3qL × 3n` product of the sample's start state plus the earlier sub-steps' force
 /// impulses (`Lc₃ᵀ Tᵏ G_f`, `3q × q` each), and the end state is one `3n × 3n` product plus
-/// the `L` forces' responses. Per sample that is `9n² + 9qnL + 3q²L²/2` flops instead of
-/// `~4 n² L` (n = 22, L = 8: 2.4× fewer; L = 64: 4.6× fewer). Algebraically the same
+/// the `L` forces' responses. Per sample that is `9n² + 12qnL + 3q²L²/2` multiplications
+/// instead of `~(3n² + 15n) L` (the paper model, n = 11, q = 1: 1.9× fewer at L = 8, 2.2× at
+/// L = 64), in a few long products instead of many short ones. Algebraically the same
 /// sub-steps as [`TruthSystem::substep_in_place`] (the same force solve on the same free
 /// predictions); they differ by round-off only.
 struct ComposedSubsteps {
