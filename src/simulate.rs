@@ -1320,6 +1320,25 @@ pub fn simulate(setup: &Setup, opts: &SimulateOptions) -> Result<Simulated, Simu
 mod tests {
     use super::*;
 
+    /// A random excitation of `samples` samples on `ne` channels: 0 at the first sample, then
+    /// normal with std `rms` (seeded).
+    fn random_excitation(ne: usize, samples: usize, rms: f64, seed: u64) -> Vec<Vec<f64>> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        (0..samples)
+            .map(|i| {
+                (0..ne)
+                    .map(|_| {
+                        if i == 0 {
+                            0.0
+                        } else {
+                            rms * rng.sample::<f64, _>(StandardNormal)
+                        }
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
     /// The composed one-sample map of a linear law equals the sub-step-by-sub-step implicit
     /// simulation (spring, dashpot and constant force on the paper's two-beam model, random
     /// excitation, 16 sub-steps, 300 samples): to 1e-9 of the output RMS.
@@ -1332,21 +1351,8 @@ mod tests {
         .unwrap();
         let setup = Setup::from_toml(&toml, "two-beam-spring.toml").unwrap();
         let model = Model::assemble(&setup).unwrap();
-        let mut rng = ChaCha8Rng::seed_from_u64(7);
         let ne = model.Lp.ncols();
-        let exc: Vec<Vec<f64>> = (0..300)
-            .map(|i| {
-                (0..ne)
-                    .map(|_| {
-                        if i == 0 {
-                            0.0
-                        } else {
-                            2e4 * rng.sample::<f64, _>(StandardNormal)
-                        }
-                    })
-                    .collect()
-            })
-            .collect();
+        let exc = random_excitation(ne, 300, 2e4, 7);
         let nb: usize = setup.connections.iter().map(|c| c.basis.len()).sum();
         let params: Vec<f64> = setup
             .connections
@@ -1400,21 +1406,8 @@ mod tests {
             .iter()
             .flat_map(|c| c.truth.clone().unwrap())
             .collect();
-        let mut rng = ChaCha8Rng::seed_from_u64(3);
         let ne = model.Lp.ncols();
-        let exc: Vec<Vec<f64>> = (0..200)
-            .map(|i| {
-                (0..ne)
-                    .map(|_| {
-                        if i == 0 {
-                            0.0
-                        } else {
-                            1.5e3 * rng.sample::<f64, _>(StandardNormal)
-                        }
-                    })
-                    .collect()
-            })
-            .collect();
+        let exc = random_excitation(ne, 200, 1.5e3, 3);
         for substeps in [2, 8] {
             let h = setup.dt_s / substeps as f64;
             let mut slow = TruthSystem::with_params(&setup, &model, h, &params).unwrap();
