@@ -818,9 +818,9 @@ const DARE_MAX_STEPS: usize = 80;
 ///
 /// Stops when the update is below 1e-14 of the solution, or when, converging, it has stopped
 /// shrinking below [`DARE_ROUND_OFF`] of it — then the iterate before that update is
-/// returned. Why:
-/// with an undamped structure `A` has modes on the unit circle, `A^(2^k)` does not decay,
-/// and once the iteration has converged its round-off doubles with every doubling step.
+/// returned. Why: with an undamped structure `A` has modes on the unit circle, `A^(2^k)`
+/// does not decay, and once the iteration has converged its round-off doubles with every
+/// doubling step.
 /// Measured on the shipped friction replay (2026-11-27): 95 of 246 solves never met the
 /// 1e-14 test; they had converged to ~5e-13 in 12 iterations, then the update grew
 /// 2× per iteration to 1e-7–1e-6 of the solution and they stopped at the 80-iteration cap
