@@ -561,6 +561,31 @@ impl TruthSystem {
         Some(())
     }
 
+    /// One sample of `substeps` sub-steps, the excitation going linearly from `pa` (the
+    /// previous sample's) to `pb` (missing channels read as 0); `pt` is the work vector of
+    /// the interpolated excitation (`ne` long).
+    fn sample_substeps(
+        &mut self,
+        s: &mut State,
+        pa: &[f64],
+        pb: &[f64],
+        substeps: usize,
+        pt: &mut DVector<f64>,
+    ) -> Option<()> {
+        for k in 1..=substeps {
+            let t = k as f64 / substeps as f64;
+            for j in 0..pt.len() {
+                let (x0, x1) = (
+                    pa.get(j).copied().unwrap_or(0.0),
+                    pb.get(j).copied().unwrap_or(0.0),
+                );
+                pt[j] = x0 + t * (x1 - x0);
+            }
+            self.substep_in_place(s, pt)?;
+        }
+        Some(())
+    }
+
     /// One sample of `map.substeps` sub-steps through [`ComposedSubsteps`], the excitation
     /// going linearly from `pa` (the previous sample's) to `pb` (missing channels read as
     /// 0): the same sub-steps and force solves as [`Self::substep_in_place`] up to round-off.
@@ -725,19 +750,14 @@ fn response_implicit(
     out.push(record(&s));
     let mut pt = DVector::zeros(ne);
     for i in 1..excitation.len() {
-        let (a, b) = (&excitation[i - 1], &excitation[i]);
-        for k in 1..=substeps {
-            let t = k as f64 / substeps as f64;
-            for j in 0..ne {
-                let (x0, x1) = (
-                    a.get(j).copied().unwrap_or(0.0),
-                    b.get(j).copied().unwrap_or(0.0),
-                );
-                pt[j] = x0 + t * (x1 - x0);
-            }
-            sys.substep_in_place(&mut s, &pt)
-                .ok_or(SimulateError::Diverged(i))?;
-        }
+        sys.sample_substeps(
+            &mut s,
+            &excitation[i - 1],
+            &excitation[i],
+            substeps,
+            &mut pt,
+        )
+        .ok_or(SimulateError::Diverged(i))?;
         if !s.is_finite() {
             return Err(SimulateError::Diverged(i));
         }
@@ -828,23 +848,11 @@ pub fn predictions_with_observer(
     let mut composed = (substeps >= 2).then(|| ComposedSubsteps::new(&sys, substeps));
     for i in 1..excitation.len() {
         let (a, b) = (&excitation[i - 1], &excitation[i]);
-        if let Some(map) = composed.as_mut() {
-            sys.sample_composed(map, &mut s, a, b)
-                .ok_or(SimulateError::Diverged(i))?;
-        } else {
-            for k in 1..=substeps {
-                let t = k as f64 / substeps as f64;
-                for j in 0..ne {
-                    let (x0, x1) = (
-                        a.get(j).copied().unwrap_or(0.0),
-                        b.get(j).copied().unwrap_or(0.0),
-                    );
-                    pt[j] = x0 + t * (x1 - x0);
-                }
-                sys.substep_in_place(&mut s, &pt)
-                    .ok_or(SimulateError::Diverged(i))?;
-            }
-        }
+        let stepped = match composed.as_mut() {
+            Some(map) => sys.sample_composed(map, &mut s, a, b),
+            None => sys.sample_substeps(&mut s, a, b, substeps, &mut pt),
+        };
+        stepped.ok_or(SimulateError::Diverged(i))?;
         if !s.is_finite() {
             return Err(SimulateError::Diverged(i));
         }
@@ -938,34 +946,7 @@ impl LinearSampleMap {
         let mut B = DMatrix::zeros(n, ne + 1);
         B.columns_mut(0, ne).copy_from(&model.Lp);
         B.column_mut(ne).copy_from(&(-(lc * &f_const)));
-        let eye = DMatrix::<f64>::identity(n, n);
-        let zero = DMatrix::<f64>::zeros(n, n);
-        // ũ = u + h v + (½ − β)h² a, ṽ = v + (1 − γ)h a as maps of x = (u, v, a).
-        let mut Pu = DMatrix::zeros(n, 3 * n);
-        Pu.view_mut((0, 0), (n, n)).copy_from(&eye);
-        Pu.view_mut((0, n), (n, n)).copy_from(&(&eye * h));
-        Pu.view_mut((0, 2 * n), (n, n))
-            .copy_from(&(&eye * ((0.5 - beta) * h * h)));
-        let mut Pv = DMatrix::zeros(n, 3 * n);
-        Pv.view_mut((0, 0), (n, n)).copy_from(&zero);
-        Pv.view_mut((0, n), (n, n)).copy_from(&eye);
-        Pv.view_mut((0, 2 * n), (n, n))
-            .copy_from(&(&eye * ((1.0 - gamma) * h)));
-        // a' = Meff⁻¹(B p̃ − C ṽ − K ũ); u' = ũ + βh² a'; v' = ṽ + γh a'.
-        let Aa = -(&meff_inv * (&C * &Pv + &K * &Pu));
-        let Ba = &meff_inv * &B;
-        let mut T = DMatrix::zeros(3 * n, 3 * n);
-        T.view_mut((0, 0), (n, 3 * n))
-            .copy_from(&(&Pu + &Aa * (beta * h * h)));
-        T.view_mut((n, 0), (n, 3 * n))
-            .copy_from(&(&Pv + &Aa * (gamma * h)));
-        T.view_mut((2 * n, 0), (n, 3 * n)).copy_from(&Aa);
-        let mut Q = DMatrix::zeros(3 * n, ne + 1);
-        Q.view_mut((0, 0), (n, ne + 1))
-            .copy_from(&(&Ba * (beta * h * h)));
-        Q.view_mut((n, 0), (n, ne + 1))
-            .copy_from(&(&Ba * (gamma * h)));
-        Q.view_mut((2 * n, 0), (n, ne + 1)).copy_from(&Ba);
+        let (T, Q) = newmark_substep_map(&meff_inv, &C, &K, &B, h, gamma, beta);
         // Compose the s sub-steps with p̃(t_k) = (1 − t_k) p̃_{i−1} + t_k p̃_i, t_k = k/s.
         let mut phi = DMatrix::<f64>::identity(3 * n, 3 * n);
         let mut g0 = DMatrix::<f64>::zeros(3 * n, ne + 1);
@@ -1040,6 +1021,50 @@ impl LinearSampleMap {
     }
 }
 
+/// One Newmark sub-step of step `h` as a linear map of `x = (u; u̇; ü)` and the input `p`
+/// (forces `B p`), with no connection force: `x' = T x + Q p`. From the predictors
+/// `ũ = u + h u̇ + (½ − β)h² ü`, `ṽ = u̇ + (1 − γ)h ü`: `ü' = Meff⁻¹(B p − C ṽ − K ũ)`,
+/// `u' = ũ + βh² ü'`, `u̇' = ṽ + γh ü'`.
+#[allow(clippy::too_many_arguments)]
+fn newmark_substep_map(
+    meff_inv: &DMatrix<f64>,
+    C: &DMatrix<f64>,
+    K: &DMatrix<f64>,
+    B: &DMatrix<f64>,
+    h: f64,
+    gamma: f64,
+    beta: f64,
+) -> (DMatrix<f64>, DMatrix<f64>) {
+    let n = K.nrows();
+    let eye = DMatrix::<f64>::identity(n, n);
+    let mut Pu = DMatrix::zeros(n, 3 * n);
+    Pu.view_mut((0, 0), (n, n)).copy_from(&eye);
+    Pu.view_mut((0, n), (n, n)).copy_from(&(&eye * h));
+    Pu.view_mut((0, 2 * n), (n, n))
+        .copy_from(&(&eye * ((0.5 - beta) * h * h)));
+    let mut Pv = DMatrix::zeros(n, 3 * n);
+    Pv.view_mut((0, n), (n, n)).copy_from(&eye);
+    Pv.view_mut((0, 2 * n), (n, n))
+        .copy_from(&(&eye * ((1.0 - gamma) * h)));
+    let Aa = -(meff_inv * (C * &Pv + K * &Pu));
+    let Ba = meff_inv * B;
+    let stack = |top: &DMatrix<f64>, mid: &DMatrix<f64>, low: &DMatrix<f64>| {
+        let c = top.ncols();
+        let mut out = DMatrix::zeros(3 * n, c);
+        out.view_mut((0, 0), (n, c)).copy_from(top);
+        out.view_mut((n, 0), (n, c)).copy_from(mid);
+        out.view_mut((2 * n, 0), (n, c)).copy_from(low);
+        out
+    };
+    let T = stack(
+        &(&Pu + &Aa * (beta * h * h)),
+        &(&Pv + &Aa * (gamma * h)),
+        &Aa,
+    );
+    let Q = stack(&(&Ba * (beta * h * h)), &(&Ba * (gamma * h)), &Ba);
+    (T, Q)
+}
+
 /// The `L` Newmark sub-steps of one sample composed around the connection forces: the
 /// prediction's map for a law that is not linear (friction, `u³`, gaps) with many sub-steps.
 ///
@@ -1088,35 +1113,14 @@ impl ComposedSubsteps {
         let model = &sys.model;
         let (n, q, ne) = (model.n(), model.Lc.ncols(), model.Lp.ncols());
         let (h, gamma, beta) = (sys.h, sys.gamma, sys.beta);
-        let eye = DMatrix::<f64>::identity(n, n);
-        // ũ = u + h v + (½ − β)h² a, ṽ = v + (1 − γ)h a as maps of x = (u, v, a).
-        let mut Pu = DMatrix::zeros(n, 3 * n);
-        Pu.view_mut((0, 0), (n, n)).copy_from(&eye);
-        Pu.view_mut((0, n), (n, n)).copy_from(&(&eye * h));
-        Pu.view_mut((0, 2 * n), (n, n))
-            .copy_from(&(&eye * ((0.5 - beta) * h * h)));
-        let mut Pv = DMatrix::zeros(n, 3 * n);
-        Pv.view_mut((0, n), (n, n)).copy_from(&eye);
-        Pv.view_mut((0, 2 * n), (n, n))
-            .copy_from(&(&eye * ((1.0 - gamma) * h)));
-        // a₀ = Meff⁻¹(Lp p − C ṽ − K ũ); u' = ũ + βh² a', v' = ṽ + γh a', a' = a₀ − Y f.
-        let Aa = -(&sys.meff_inv * (&model.C * &Pv + &model.K * &Pu));
-        let Ba = &sys.meff_inv * &model.Lp;
-        let stack = |top: &DMatrix<f64>, mid: &DMatrix<f64>, low: &DMatrix<f64>| {
-            let c = top.ncols();
-            let mut out = DMatrix::zeros(3 * n, c);
-            out.view_mut((0, 0), (n, c)).copy_from(top);
-            out.view_mut((n, 0), (n, c)).copy_from(mid);
-            out.view_mut((2 * n, 0), (n, c)).copy_from(low);
-            out
-        };
-        let T = stack(
-            &(&Pu + &Aa * (beta * h * h)),
-            &(&Pv + &Aa * (gamma * h)),
-            &Aa,
-        );
-        let Q = stack(&(&Ba * (beta * h * h)), &(&Ba * (gamma * h)), &Ba);
-        let Gf = -stack(&(&sys.Y * (beta * h * h)), &(&sys.Y * (gamma * h)), &sys.Y);
+        let (T, Q) =
+            newmark_substep_map(&sys.meff_inv, &model.C, &model.K, &model.Lp, h, gamma, beta);
+        let mut Gf = DMatrix::zeros(3 * n, q);
+        Gf.view_mut((0, 0), (n, q))
+            .copy_from(&(&sys.Y * (-beta * h * h)));
+        Gf.view_mut((n, 0), (n, q))
+            .copy_from(&(&sys.Y * (-gamma * h)));
+        Gf.view_mut((2 * n, 0), (n, q)).copy_from(&(-&sys.Y));
         // Lc₃ᵀ: δ, δ̇, δ̈ of each connection from x.
         let mut lc3t = DMatrix::zeros(3 * q, 3 * n);
         for b in 0..3 {
@@ -1419,13 +1423,8 @@ mod tests {
             for i in 1..exc.len() {
                 let mut b = a.clone();
                 fast.status.clone_from(&slow.status);
-                for k in 1..=substeps {
-                    let t = k as f64 / substeps as f64;
-                    for j in 0..ne {
-                        pt[j] = exc[i - 1][j] + t * (exc[i][j] - exc[i - 1][j]);
-                    }
-                    slow.substep_in_place(&mut a, &pt).unwrap();
-                }
+                slow.sample_substeps(&mut a, &exc[i - 1], &exc[i], substeps, &mut pt)
+                    .unwrap();
                 fast.sample_composed(&mut map, &mut b, &exc[i - 1], &exc[i])
                     .unwrap();
                 assert_eq!(slow.status, fast.status, "{substeps} sub-steps, sample {i}");

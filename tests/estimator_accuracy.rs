@@ -50,6 +50,21 @@ fn run(
     .unwrap()
 }
 
+/// Every identified parameter within `errors` of its stated standard errors of the truth.
+fn assert_every_parameter_within(id: &Identification, errors: f64, what: &str) {
+    for p in id.final_parameters().unwrap() {
+        let t = p.truth.unwrap();
+        let off = (p.value - t) / p.std_error;
+        assert!(
+            off.abs() < errors,
+            "{what}: {} = {} ± {}, truth {t}: {off:.1} errors",
+            p.basis,
+            p.value,
+            p.std_error
+        );
+    }
+}
+
 fn rel(id: &Identification, j: usize) -> f64 {
     let p = &id.final_parameters().unwrap()[j];
     (p.value - p.truth.unwrap()) / p.truth.unwrap()
@@ -246,17 +261,7 @@ fn a_cut_record_at_full_noise_is_seen_in_motion_by_its_innovations() {
             id.notes
         );
         assert!(id.failure.is_none(), "skip {skip}: {:?}", id.failure);
-        for p in id.final_parameters().unwrap() {
-            let t = p.truth.unwrap();
-            let off = (p.value - t) / p.std_error;
-            assert!(
-                off.abs() < 3.0,
-                "skip {skip}: {} = {} ± {}, truth {t}: {off:.1} errors",
-                p.basis,
-                p.value,
-                p.std_error
-            );
-        }
+        assert_every_parameter_within(&id, 3.0, &format!("skip {skip}"));
     }
 }
 
@@ -275,35 +280,7 @@ fn a_record_at_rest_flagged_at_the_kept_level_is_cleared_at_the_likeliest() {
         .join("recordings")
         .join("two-beam-friction.toml");
     let setup = Setup::from_file(&path).unwrap();
-    let steps = 2000;
-    let sim = simulate(
-        &setup,
-        &SimulateOptions {
-            scenario: Scenario::Random { rms: 2e4 },
-            steps,
-            dt_s: setup.dt_s,
-            substeps: 64,
-            noise: Noise::Additive(1.0),
-            seed: 4,
-        },
-    )
-    .unwrap();
-    let data = TestData {
-        samples: (0..steps as u64).collect(),
-        t_ns: vec![0; steps],
-        excitation: sim.excitation,
-        response: sim.response,
-    };
-    let opts = IdentifyOptions::from_setup(&setup);
-    let id = identify(
-        &setup,
-        &data,
-        &opts,
-        Some(&sim.truth),
-        &mut |_| {},
-        &mut |_, _| {},
-    )
-    .unwrap();
+    let id = run(&setup, 2000, 64, Noise::Additive(1.0), 4);
     assert!(id.failure.is_none(), "{:?}", id.failure);
     assert!(id.motion_in_record.is_none(), "{:?}", id.notes);
     let pem = id
@@ -324,15 +301,5 @@ fn a_record_at_rest_flagged_at_the_kept_level_is_cleared_at_the_likeliest() {
         likeliest.statistic < 0.6 * likeliest.limit,
         "cleared at the likeliest: {tests:?}"
     );
-    for p in id.final_parameters().unwrap() {
-        let t = p.truth.unwrap();
-        let off = (p.value - t) / p.std_error;
-        assert!(
-            off.abs() < 3.0,
-            "{} = {} ± {}, truth {t}: {off:.1} errors",
-            p.basis,
-            p.value,
-            p.std_error
-        );
-    }
+    assert_every_parameter_within(&id, 3.0, "seed 4");
 }
