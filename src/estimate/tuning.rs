@@ -224,4 +224,24 @@ mod tests {
         assert!((x / 3.0 - 1.0).abs() < 1e-3, "{x}");
         assert_eq!(count, 9 + 20);
     }
+
+    /// The parallel version evaluates the same points and returns the same answer, to the
+    /// bit, on a bumpy function (two peaks, a non-finite region).
+    #[test]
+    fn maximise_log_parallel_equals_the_sequential_one() {
+        let f = |x: f64| {
+            if x > 5e3 {
+                f64::NAN
+            } else {
+                -(x.ln() - 3f64.ln()).powi(2) + 0.3 * (5.0 * x.ln()).sin()
+            }
+        };
+        for (grid, refine) in [(9, 12), (6, 2), (5, 10)] {
+            let a = maximise_log(1e-4, 1e4, grid, refine, &mut |x| f(x));
+            let b = maximise_log_parallel(1e-4, 1e4, grid, refine, &f);
+            assert_eq!(a.0.to_bits(), b.0.to_bits(), "{a:?} vs {b:?}");
+            assert_eq!(a.1.to_bits(), b.1.to_bits(), "{a:?} vs {b:?}");
+            assert_eq!(a.2, b.2);
+        }
+    }
 }
