@@ -547,23 +547,8 @@ fn sandwich(j: &Jac, m: usize) -> Option<(Vec<f64>, Vec<f64>, usize)> {
     let lag = ((2.0 * 1.1447 * (alpha * n as f64).cbrt()).ceil() as usize)
         .max(1)
         .min(n / 4);
-    let mut B = DMatrix::<f64>::zeros(p, p);
-    for l in 0..=lag {
-        let w = 1.0 - l as f64 / (lag + 1) as f64;
-        let mut gam = DMatrix::<f64>::zeros(p, p);
-        for i in l..n {
-            for a in 0..p {
-                for b in 0..p {
-                    gam[(a, b)] += s[i][a] * s[i - l][b];
-                }
-            }
-        }
-        if l == 0 {
-            B += gam;
-        } else {
-            B += (&gam + gam.transpose()) * w;
-        }
-    }
+    let flat: Vec<f64> = s.iter().flatten().copied().collect();
+    let B = crate::estimate::refit::bartlett_long_run_covariance(&flat, p, lag);
     // F⁻¹ in the scaled coordinates: D⁻¹ F⁻¹ D⁻¹ with D = diag(scale).
     let inv_s = DMatrix::from_fn(p, p, |a, b| inv[(a, b)] / (scale[a] * scale[b]));
     let cov_s = &inv_s * B * &inv_s;
