@@ -93,7 +93,7 @@ fn tune_pem_force(
     use crate::estimate::prediction_error::{innovations, predictor};
     let scale = crate::estimate::kalman::force_scale_of(model);
     let n = data.len() as f64;
-    let mut loglik = |fs: f64| -> f64 {
+    let loglik = |fs: f64| -> f64 {
         let Ok(mut pred) = predictor(setup, model, start, sigma, substeps, fs) else {
             return f64::NEG_INFINITY;
         };
@@ -139,7 +139,17 @@ fn tune_pem_force(
         ForceSearch::Coarse => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 6, 2),
         ForceSearch::Near(_) => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 11, 6),
     };
-    let (force, ll, _) = crate::estimate::tuning::maximise_log(lo, hi, grid, golden, &mut loglik);
+    // The near search runs alone (after the level choice): its grid and first golden pair on
+    // both cores (the same points and comparisons, so the same answer). The coarse searches
+    // already run one level per core.
+    let (force, ll, _) = match search {
+        ForceSearch::Near(_) => {
+            crate::estimate::tuning::maximise_log_parallel(lo, hi, grid, golden, &loglik)
+        }
+        ForceSearch::Coarse => {
+            crate::estimate::tuning::maximise_log(lo, hi, grid, golden, &mut |f| loglik(f))
+        }
+    };
     (force, ll)
 }
 
