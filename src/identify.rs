@@ -151,6 +151,16 @@ impl TestData {
         self.samples.is_empty()
     }
 
+    /// The first `len` samples, or `None` when the record is not longer than that.
+    pub fn prefix(&self, len: usize) -> Option<TestData> {
+        (self.len() > len).then(|| TestData {
+            samples: self.samples[..len].to_vec(),
+            t_ns: self.t_ns[..len.min(self.t_ns.len())].to_vec(),
+            excitation: self.excitation[..len].to_vec(),
+            response: self.response[..len].to_vec(),
+        })
+    }
+
     /// Root-mean-square of each response channel (a scale for the weights when no noise
     /// level is known).
     pub fn response_rms(&self) -> Vec<f64> {

@@ -334,12 +334,7 @@ pub(super) fn refine_by_prediction_error(
     let (exc, resp) = (&data.excitation, &data.response);
     // The level is chosen on a prefix of long records (see [`LEVEL_CHOICE_SAMPLES`]); the
     // observer force is then tuned again at that level on the whole record.
-    let prefix = (data.len() > LEVEL_CHOICE_SAMPLES).then(|| TestData {
-        samples: data.samples[..LEVEL_CHOICE_SAMPLES].to_vec(),
-        t_ns: data.t_ns[..LEVEL_CHOICE_SAMPLES].to_vec(),
-        excitation: data.excitation[..LEVEL_CHOICE_SAMPLES].to_vec(),
-        response: data.response[..LEVEL_CHOICE_SAMPLES].to_vec(),
-    });
+    let prefix = data.prefix(LEVEL_CHOICE_SAMPLES);
     let choice = prefix.as_ref().unwrap_or(data);
     let nobs = (choice.len() * sigma.len()) as f64;
     // A log-likelihood gain of more than 3 standard deviations of ½χ² (`1.5√(2Nm)`).
