@@ -65,6 +65,24 @@ fn assert_every_parameter_within(id: &Identification, errors: f64, what: &str) {
     }
 }
 
+/// The shipped friction setup (`recordings/two-beam-friction.toml`).
+fn shipped_friction_setup() -> Setup {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("recordings")
+        .join("two-beam-friction.toml");
+    Setup::from_file(&path).unwrap()
+}
+
+/// The prediction error's report of an identification refined by it.
+fn prediction_error_report(
+    id: &Identification,
+) -> &jointid::estimate::prediction_error::PredictionErrorReport {
+    id.output_error
+        .as_ref()
+        .and_then(|o| o.prediction_error.as_ref())
+        .expect("refined by prediction error")
+}
+
 fn rel(id: &Identification, j: usize) -> f64 {
     let p = &id.final_parameters().unwrap()[j];
     (p.value - p.truth.unwrap()) / p.truth.unwrap()
@@ -220,10 +238,7 @@ fn continuous_data_sign_u_friction_by_prediction_error() {
 /// record uncut (at rest) is not flagged.
 #[test]
 fn a_cut_record_at_full_noise_is_seen_in_motion_by_its_innovations() {
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("recordings")
-        .join("two-beam-friction.toml");
-    let setup = Setup::from_file(&path).unwrap();
+    let setup = shipped_friction_setup();
     let sim = simulate(
         &setup,
         &SimulateOptions {
@@ -276,18 +291,11 @@ fn a_cut_record_at_full_noise_is_seen_in_motion_by_its_innovations() {
 /// records were identified again as in motion (one of 16 refused).
 #[test]
 fn a_record_at_rest_flagged_at_the_kept_level_is_cleared_at_the_likeliest() {
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("recordings")
-        .join("two-beam-friction.toml");
-    let setup = Setup::from_file(&path).unwrap();
+    let setup = shipped_friction_setup();
     let id = run(&setup, 2000, 64, Noise::Additive(1.0), 4);
     assert!(id.failure.is_none(), "{:?}", id.failure);
     assert!(id.motion_in_record.is_none(), "{:?}", id.notes);
-    let pem = id
-        .output_error
-        .as_ref()
-        .and_then(|o| o.prediction_error.as_ref())
-        .expect("refined by prediction error");
+    let pem = prediction_error_report(&id);
     let tests = &pem.start_at_rest_tests;
     assert_eq!(tests.len(), 2, "{tests:?}");
     let (kept, likeliest) = (tests[0], tests[1]);
@@ -313,10 +321,7 @@ fn a_record_at_rest_flagged_at_the_kept_level_is_cleared_at_the_likeliest() {
 /// used, its cost is below the limit and every parameter is within 3 errors.
 #[test]
 fn a_level_that_misfits_the_whole_record_gives_way_to_the_likeliest() {
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("recordings")
-        .join("two-beam-friction.toml");
-    let setup = Setup::from_file(&path).unwrap();
+    let setup = shipped_friction_setup();
     let id = run(&setup, 20_000, 64, Noise::Additive(0.1), 1);
     assert!(id.failure.is_none(), "{:?}", id.failure);
     assert!(
@@ -324,11 +329,7 @@ fn a_level_that_misfits_the_whole_record_gives_way_to_the_likeliest() {
         "{:?}",
         id.notes
     );
-    let pem = id
-        .output_error
-        .as_ref()
-        .and_then(|o| o.prediction_error.as_ref())
-        .expect("refined by prediction error");
+    let pem = prediction_error_report(&id);
     assert_eq!(pem.substeps, 64, "{:?}", id.notes);
     assert!(pem.cost_end < 2.0, "cost {}", pem.cost_end);
     assert_every_parameter_within(&id, 3.0, "seed 1");
