@@ -425,11 +425,13 @@ pub(super) fn refine_by_prediction_error(
     // deviations of 64 there) ended at cost 7.9 on the whole record, the refinement was
     // refused and the free-run output error gave the friction −51 % ± 43 % after 9 minutes;
     // at 64 sub-steps the same record gives cost ~1 (the start-at-rest test's second run).
-    if r.report.cost_end > PEM_MAX_COST && likeliest.0 != sub {
-        let (r2, f2) = refine_at(likeliest.0, likeliest.1)?;
-        if r2.report.cost_end < r.report.cost_end {
-            (r, force_std, sub) = (r2, f2, likeliest.0);
-        }
+    // (A failed second refinement leaves the first, which `identify` then refuses.)
+    if r.report.cost_end > PEM_MAX_COST
+        && likeliest.0 != sub
+        && let Ok((r2, f2)) = refine_at(likeliest.0, likeliest.1)
+        && r2.report.cost_end < r.report.cost_end
+    {
+        (r, force_std, sub) = (r2, f2, likeliest.0);
     }
     // A start in motion that the first sample did not show, tested at the refined values
     // (at the start values a parameter error leaves a transient that a start state also
