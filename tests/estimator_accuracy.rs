@@ -312,25 +312,27 @@ fn a_record_at_rest_flagged_at_the_kept_level_is_cleared_at_the_likeliest() {
     assert_every_parameter_within(&id, 3.0, "seed 4");
 }
 
-/// A long continuous record whose model level, kept on the first 2,000 samples, misfits the
+/// Long continuous records whose model level, kept on the first 2,000 samples, misfits the
 /// whole record (the shipped friction setup, 20,000 samples of 64-sub-step data, 10 % noise,
-/// seed 1): 32 sub-steps were within 3 standard deviations of 64 on the prefix but left a
-/// normalised innovation cost of 7.9 on the whole record, the prediction-error answer was
-/// refused and the free-run output error gave the friction −51 % ± 43 % after 9 minutes.
-/// The likeliest level (64) is now tried before refusing: the prediction error's answer is
-/// used, its cost is below the limit and every parameter is within 3 errors.
+/// seeds 1 and 2): 32 sub-steps were within 3 standard deviations of 64 on the prefix but
+/// left a normalised innovation cost of 7.9 and 1.7 on the whole record — seed 1's answer was
+/// refused and the free-run output error gave the friction −51 % ± 43 % after 9 minutes,
+/// seed 2's spring was 3.8 errors off. The level is now checked again on the whole record:
+/// both are refined at 64 sub-steps, their cost below 1 and every parameter within 3 errors.
 #[test]
 fn a_level_that_misfits_the_whole_record_gives_way_to_the_likeliest() {
     let setup = shipped_friction_setup();
-    let id = run(&setup, 20_000, 64, Noise::Additive(0.1), 1);
-    assert!(id.failure.is_none(), "{:?}", id.failure);
-    assert!(
-        !id.notes.iter().any(|n| n.contains("refinement not used")),
-        "{:?}",
-        id.notes
-    );
-    let pem = prediction_error_report(&id);
-    assert_eq!(pem.substeps, 64, "{:?}", id.notes);
-    assert!(pem.cost_end < 2.0, "cost {}", pem.cost_end);
-    assert_every_parameter_within(&id, 3.0, "seed 1");
+    for seed in [1, 2] {
+        let id = run(&setup, 20_000, 64, Noise::Additive(0.1), seed);
+        assert!(id.failure.is_none(), "seed {seed}: {:?}", id.failure);
+        assert!(
+            !id.notes.iter().any(|n| n.contains("refinement not used")),
+            "seed {seed}: {:?}",
+            id.notes
+        );
+        let pem = prediction_error_report(&id);
+        assert_eq!(pem.substeps, 64, "seed {seed}: {:?}", id.notes);
+        assert!(pem.cost_end < 1.0, "seed {seed}: cost {}", pem.cost_end);
+        assert_every_parameter_within(&id, 3.0, &format!("seed {seed}"));
+    }
 }
