@@ -333,7 +333,8 @@ pub(super) fn refine_by_prediction_error(
     let floor = PEM_FRICTION_FLOOR * level;
     let (exc, resp) = (&data.excitation, &data.response);
     // The level is chosen on a prefix of long records (see [`LEVEL_CHOICE_SAMPLES`]); the
-    // observer force is then tuned again at that level on the whole record.
+    // observer force is then tuned again at that level on the whole record, where the choice
+    // is checked once more (below).
     let prefix = data.prefix(LEVEL_CHOICE_SAMPLES);
     let choice = prefix.as_ref().unwrap_or(data);
     let nobs = (choice.len() * sigma.len()) as f64;
@@ -410,7 +411,8 @@ pub(super) fn refine_by_prediction_error(
     // there), which on the whole record ended at a normalised cost of 7.9, above
     // `PEM_MAX_COST`: the answer was refused and the free-run output error gave the friction
     // −51 % ± 43 % after 9 minutes; seed 2 kept 32 at cost 1.7 (the spring 3.8 errors off).
-    // Their likeliest level, 64, gives 0.56–0.63 on the other seeds.
+    // At their likeliest level, 64, both end at 0.56–0.57, every parameter within 1.2 errors
+    // (ACCURACY.md, "Long records").
     if prefix.is_some() && likeliest.0 != sub {
         let whole_significant = 1.5 * (2.0 * (data.len() * sigma.len()) as f64).sqrt();
         let (force, likelihood) = near(likeliest.0, likeliest.1);
