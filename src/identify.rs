@@ -674,32 +674,23 @@ pub fn tune_kalman(
             .map(|(x, e)| if *e { x * s } else { *x })
             .collect()
     };
+    // The innovation log-likelihood at a noise scale, random-walk std and model-error std.
+    let likelihood = |s: f64, w: f64, e: f64| {
+        kalman_log_likelihood(setup, &with_terms, params, opts, &scaled(s), data, w, e)
+    };
     let mut noise_scale = 1.0;
-    let sig = scaled(noise_scale);
     let (mut walk, mut ll, n) = maximise_log(1e-6 * scale, 1e2 * scale, 9, 12, &|w| {
-        kalman_log_likelihood(setup, &with_terms, params, opts, &sig, data, w, model_error)
+        likelihood(noise_scale, w, model_error)
     });
     runs += n;
     if opts.tune_noise_scale && estimated.iter().any(|&e| e) {
-        let (s, l, n) = maximise_log(1e-8, 1e1, 10, 10, &|s| {
-            kalman_log_likelihood(
-                setup,
-                &with_terms,
-                params,
-                opts,
-                &scaled(s),
-                data,
-                walk,
-                model_error,
-            )
-        });
+        let (s, l, n) = maximise_log(1e-8, 1e1, 10, 10, &|s| likelihood(s, walk, model_error));
         runs += n;
         if l > ll {
             noise_scale = s;
             ll = l;
-            let sig = scaled(noise_scale);
             let (w, l, n) = maximise_log(walk / 30.0, walk * 30.0, 5, 10, &|w| {
-                kalman_log_likelihood(setup, &with_terms, params, opts, &sig, data, w, model_error)
+                likelihood(noise_scale, w, model_error)
             });
             runs += n;
             if l > ll {
@@ -709,9 +700,8 @@ pub fn tune_kalman(
         }
     }
     if opts.model_error_std.is_none() && opts.tune_model_error {
-        let sig = scaled(noise_scale);
         let (e, l, n) = maximise_log(1e-9 * scale, 1e-1 * scale, 9, 8, &|e| {
-            kalman_log_likelihood(setup, &with_terms, params, opts, &sig, data, walk, e)
+            likelihood(noise_scale, walk, e)
         });
         runs += n;
         if l > ll {
@@ -719,16 +709,7 @@ pub fn tune_kalman(
             ll = l;
             if opts.tune_noise_scale && estimated.iter().any(|&e| e) {
                 let (s, l, n) = maximise_log(noise_scale / 30.0, noise_scale * 30.0, 5, 8, &|s| {
-                    kalman_log_likelihood(
-                        setup,
-                        &with_terms,
-                        params,
-                        opts,
-                        &scaled(s),
-                        data,
-                        walk,
-                        model_error,
-                    )
+                    likelihood(s, walk, model_error)
                 });
                 runs += n;
                 if l > ll {
@@ -736,9 +717,8 @@ pub fn tune_kalman(
                     ll = l;
                 }
             }
-            let sig = scaled(noise_scale);
             let (w, l, n) = maximise_log(walk / 30.0, walk * 30.0, 5, 8, &|w| {
-                kalman_log_likelihood(setup, &with_terms, params, opts, &sig, data, w, model_error)
+                likelihood(noise_scale, w, model_error)
             });
             runs += n;
             if l > ll {
