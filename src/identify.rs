@@ -1164,6 +1164,7 @@ fn identify_once(
     let mut prev_residual: Option<Vec<f64>> = None;
     let mut tunings = 0;
     for pass in 1..=opts.passes {
+        let t0 = std::time::Instant::now();
         let outcome = run_pass(
             setup,
             &model,
@@ -1177,6 +1178,7 @@ fn identify_once(
             frozen.as_ref(),
             &mut |o| on_sample(pass, o),
         );
+        crate::par::phase("pass (with any tuning)", t0);
         let report = match outcome {
             Ok((r, track, tuned, initial_fit)) => {
                 result.track = Some(track);
@@ -1425,6 +1427,7 @@ fn finish_with_output_error(
         .iter()
         .any(|c| c.basis.iter().any(|b| matches!(b, Basis::SignU)));
     if opts.output_error && sign_u {
+        let t0 = std::time::Instant::now();
         let refined =
             match refine_by_prediction_error(setup, model, data, opts, sigma, &values, &scales) {
                 Ok(PemStage::Refined(r, raised)) => Ok((r, raised)),
@@ -1435,6 +1438,7 @@ fn finish_with_output_error(
                 }
                 Err(e) => Err(e),
             };
+        crate::par::phase("prediction error (all)", t0);
         match refined {
             Ok((r, raised)) if r.report.cost_end > PEM_MAX_COST => {
                 result.notes.push(format!(
@@ -1911,7 +1915,12 @@ fn run_pass(
                 tuning.push(("tuning_frozen".to_string(), 1.0));
                 t.clone()
             }
-            None => tune_kalman(setup, model, params, opts, sigma, estimated, data)?,
+            None => {
+                let t0 = std::time::Instant::now();
+                let t = tune_kalman(setup, model, params, opts, sigma, estimated, data)?;
+                crate::par::phase("kalman tuning", t0);
+                t
+            }
         };
         used_tuning = Some(t.clone());
         tuning.extend([

@@ -64,6 +64,19 @@ pub fn map_with<T: Sync, R: Send>(
     all.into_iter().map(|(_, r)| r).collect()
 }
 
+/// Wall time of the identification's phases, printed to stderr when `JOINTID_TIMING` is set
+/// (how BENCHMARKS.md splits an identification; no cost when unset). `phase("name", t0)`
+/// prints the time since `t0`.
+pub fn phase(name: &str, since: std::time::Instant) {
+    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    if *ON.get_or_init(|| std::env::var_os("JOINTID_TIMING").is_some()) {
+        eprintln!(
+            "timing: {name:<28} {:>9.1} ms",
+            since.elapsed().as_secs_f64() * 1e3
+        );
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

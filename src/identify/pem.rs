@@ -356,6 +356,7 @@ pub(super) fn refine_by_prediction_error(
     // The levels are independent: tuned on parallel threads, finest first (the longest).
     let mut order = levels.clone();
     order.reverse();
+    let t0 = std::time::Instant::now();
     let mut tuned: Vec<(usize, f64, f64)> = crate::par::map(&order, |&l| {
         let (f, ll) = tune_pem_force(
             setup,
@@ -402,7 +403,10 @@ pub(super) fn refine_by_prediction_error(
             (coarse_force, f64::NEG_INFINITY)
         }
     };
+    crate::par::phase("pem level choice", t0);
+    let t0 = std::time::Instant::now();
     let (mut force_std, kept_likelihood) = near(sub, force_std);
+    crate::par::phase("pem near force", t0);
     let mut sub = sub;
     // A long record: the level was kept on its prefix; the rule (the coarsest within 3
     // standard deviations of the likeliest) is checked again on the whole record, whose
@@ -420,6 +424,7 @@ pub(super) fn refine_by_prediction_error(
             (force_std, sub) = (force, likeliest.0);
         }
     }
+    let t0 = std::time::Instant::now();
     let mut r = refine(
         setup,
         model,
@@ -442,6 +447,7 @@ pub(super) fn refine_by_prediction_error(
     // vibration also fits) is seen again at the likeliest level before it is called motion
     // (measured at rest, 64-sub-step data at 100 % noise: flagged at the kept 16 or 32
     // sub-steps, ACCURACY.md).
+    crate::par::phase("pem refine", t0);
     if opts.initial_state.is_none() {
         let mut tests = Vec::new();
         let mut motion = start_motion(
