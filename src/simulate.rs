@@ -743,21 +743,15 @@ fn response_implicit(
 ) -> Result<Vec<Vec<f64>>, SimulateError> {
     let h = dt_s / substeps as f64;
     let mut sys = TruthSystem::with_params(setup, model, h, params)?;
-    let ne = model.Lp.ncols();
     let mut s = rest_state(model, &sys, &excitation[0])?;
     let record = |s: &State| station_outputs(model, s);
     let mut out = Vec::with_capacity(excitation.len());
     out.push(record(&s));
-    let mut pt = DVector::zeros(ne);
+    let mut stepper = SampleStepper::new(setup, model, params, dt_s, substeps)?;
     for i in 1..excitation.len() {
-        sys.sample_substeps(
-            &mut s,
-            &excitation[i - 1],
-            &excitation[i],
-            substeps,
-            &mut pt,
-        )
-        .ok_or(SimulateError::Diverged(i))?;
+        stepper
+            .step(&mut sys, &mut s, &excitation[i - 1], &excitation[i])
+            .ok_or(SimulateError::Diverged(i))?;
         if !s.is_finite() {
             return Err(SimulateError::Diverged(i));
         }
@@ -773,11 +767,8 @@ fn response_implicit(
 /// [`response_to_excitation`] (implicit path). `initial`: offsets `(u; u̇; ü)` from rest of
 /// the state the record starts from (`None`: at rest).
 ///
-/// Why: the prediction-error predictor of [`crate::estimate::prediction_error`]. A joint
-/// that is stuck stays stuck through a correction: the correction's component along a stuck
-/// connection's `Lc` column is removed (a stuck `sign(u)` joint holds δ = 0, a stuck
-/// `sign(v)` joint δ̇ = 0; a correction would otherwise move it off the constraint and the
-/// next sub-step would pull it back with an impulsive force).
+/// Why: the prediction-error predictor of [`crate::estimate::prediction_error`]. The whole
+/// correction is applied, stuck joints included (see the comment in the body).
 #[allow(clippy::too_many_arguments)]
 pub fn predictions_with_observer(
     setup: &Setup,
@@ -808,7 +799,6 @@ pub fn predictions_with_observer(
     }
     let h = dt_s / substeps as f64;
     let mut sys = TruthSystem::with_params(setup, model, h, params)?;
-    let ne = model.Lp.ncols();
     let mut s = rest_state(model, &sys, &excitation[0])?;
     if let Some(x) = initial.filter(|x| x.len() == 3 * n) {
         for k in 0..n {
@@ -843,30 +833,11 @@ pub fn predictions_with_observer(
     let y0 = record(&s);
     correct(&mut s, &response[0], &y0);
     out.push(y0);
-    let mut pt = DVector::zeros(ne);
-    // A friction that slips one way through the sample: one composed map
-    // ([`SlipSampleMap`]); otherwise two or more sub-steps are composed around the force
-    // solves (the same sub-steps, fewer flops), built when first needed.
-    let mut slip = SlipSampleMap::new(setup, model, params, dt_s, substeps)?;
-    let mut composed: Option<ComposedSubsteps> = None;
+    let mut stepper = SampleStepper::new(setup, model, params, dt_s, substeps)?;
     for i in 1..excitation.len() {
-        let (a, b) = (&excitation[i - 1], &excitation[i]);
-        let slipped = slip
-            .as_mut()
-            .is_some_and(|map| map.try_sample(&mut s, a, b));
-        if let Some(map) = slip.as_ref().filter(|_| slipped) {
-            for (ci, sign) in map.slips() {
-                sys.status[ci] = Status::Slip(sign);
-            }
-        } else {
-            let stepped = if substeps >= 2 {
-                let map = composed.get_or_insert_with(|| ComposedSubsteps::new(&sys, substeps));
-                sys.sample_composed(map, &mut s, a, b)
-            } else {
-                sys.sample_substeps(&mut s, a, b, substeps, &mut pt)
-            };
-            stepped.ok_or(SimulateError::Diverged(i))?;
-        }
+        stepper
+            .step(&mut sys, &mut s, &excitation[i - 1], &excitation[i])
+            .ok_or(SimulateError::Diverged(i))?;
         if !s.is_finite() {
             return Err(SimulateError::Diverged(i));
         }
@@ -1032,6 +1003,55 @@ impl LinearSampleMap {
             out.push(record(&x));
         }
         Ok(out)
+    }
+}
+
+/// How the simulations of a record ([`response_implicit`], [`predictions_with_observer`])
+/// step a sample: a friction that slips one way through it by one composed map
+/// ([`SlipSampleMap`]); otherwise the force solve at every sub-step, two or more sub-steps
+/// composed around it ([`ComposedSubsteps`], built when first needed). The same sub-steps
+/// either way, up to round-off (unit tests against the sub-step path).
+struct SampleStepper {
+    slip: Option<SlipSampleMap>,
+    composed: Option<ComposedSubsteps>,
+    substeps: usize,
+    pt: DVector<f64>,
+}
+
+impl SampleStepper {
+    fn new(
+        setup: &Setup,
+        model: &Model,
+        params: &[f64],
+        dt_s: f64,
+        substeps: usize,
+    ) -> Result<Self, SimulateError> {
+        Ok(Self {
+            slip: SlipSampleMap::new(setup, model, params, dt_s, substeps)?,
+            composed: None,
+            substeps,
+            pt: DVector::zeros(model.Lp.ncols()),
+        })
+    }
+
+    /// One sample `pa → pb` of `sys` from `s`; `None` when a force solve fails.
+    fn step(&mut self, sys: &mut TruthSystem, s: &mut State, pa: &[f64], pb: &[f64]) -> Option<()> {
+        if let Some(map) = self.slip.as_mut()
+            && map.try_sample(s, pa, pb)
+        {
+            for (ci, sign) in map.slips() {
+                sys.status[ci] = Status::Slip(sign);
+            }
+            return Some(());
+        }
+        if self.substeps >= 2 {
+            let map = self
+                .composed
+                .get_or_insert_with(|| ComposedSubsteps::new(sys, self.substeps));
+            sys.sample_composed(map, s, pa, pb)
+        } else {
+            sys.sample_substeps(s, pa, pb, self.substeps, &mut self.pt)
+        }
     }
 }
 
