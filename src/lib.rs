@@ -32,6 +32,7 @@
 //! - [`app`]: what the command line does.
 pub mod align;
 pub mod app;
+pub mod dense;
 pub mod estimate;
 pub mod identify;
 pub mod integrate;

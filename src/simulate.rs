@@ -605,9 +605,9 @@ impl TruthSystem {
         map.x.rows_mut(0, n).copy_from(&s.u);
         map.x.rows_mut(n, n).copy_from(&s.v);
         map.x.rows_mut(2 * n, n).copy_from(&s.a);
-        map.free.gemv(1.0, &map.free_state, &map.x, 0.0);
-        map.free.gemv(1.0, &map.free_p0, &map.p0, 1.0);
-        map.free.gemv(1.0, &map.free_p1, &map.p1, 1.0);
+        crate::dense::gemv(&mut map.free, &map.free_state, &map.x, false);
+        crate::dense::gemv(&mut map.free, &map.free_p0, &map.p0, true);
+        crate::dense::gemv(&mut map.free, &map.free_p1, &map.p1, true);
         for j in 0..steps {
             for c in 0..3 * q {
                 // The earlier sub-steps' forces: impulse k = j − i from sub-step i, as one
@@ -631,10 +631,10 @@ impl TruthSystem {
                 map.forces_reversed[m][steps - 1 - j] = self.work.f[m];
             }
         }
-        map.next.gemv(1.0, &map.phi, &map.x, 0.0);
-        map.next.gemv(1.0, &map.g0, &map.p0, 1.0);
-        map.next.gemv(1.0, &map.g1, &map.p1, 1.0);
-        map.next.gemv(1.0, &map.force_to_end, &map.forces, 1.0);
+        crate::dense::gemv(&mut map.next, &map.phi, &map.x, false);
+        crate::dense::gemv(&mut map.next, &map.g0, &map.p0, true);
+        crate::dense::gemv(&mut map.next, &map.g1, &map.p1, true);
+        crate::dense::gemv(&mut map.next, &map.force_to_end, &map.forces, true);
         s.u.copy_from(&map.next.rows(0, n));
         s.v.copy_from(&map.next.rows(n, n));
         s.a.copy_from(&map.next.rows(2 * n, n));
@@ -814,7 +814,7 @@ pub fn predictions_with_observer(
         for k in 0..m {
             innov[k] = y.get(k).copied().unwrap_or(0.0) - yhat[k];
         }
-        dx.gemv(1.0, gain, &innov, 0.0);
+        crate::dense::gemv(&mut dx, gain, &innov, false);
         // The whole correction, stuck joints included. It used to be removed along a
         // joint whose friction status was `Stick` at the sample's end (to keep it stuck),
         // which made the prediction jump between a friction level of 0 (no stick–slip
@@ -1088,6 +1088,8 @@ struct SlipSampleMap {
     /// Per check row: the absolute row sums of the four blocks (`Σ|terms| ≤ Σ rowsum·‖·‖∞`,
     /// the scale of its round-off).
     row_sums: Vec<[f64; 4]>,
+    /// Their largest values over the rows.
+    largest_row_sums: [f64; 4],
     /// Per friction: its connection, on the rate (`sign(v)`) or the deformation, its level.
     friction: Vec<(usize, bool, f64)>,
     /// `δ` (or `δ̇`) of each friction from the state (`r × 3n`).
@@ -1207,7 +1209,10 @@ impl SlipSampleMap {
                     abs_sum(&check_b, row),
                 ]
             })
-            .collect();
+            .collect::<Vec<[f64; 4]>>();
+        let largest_row_sums = row_sums
+            .iter()
+            .fold([0.0f64; 4], |acc, s| std::array::from_fn(|k| acc[k].max(s[k])));
         // T^L by repeated squaring.
         let mut phi = DMatrix::<f64>::identity(3 * n, 3 * n);
         let (mut base, mut e) = (T, L);
@@ -1221,6 +1226,7 @@ impl SlipSampleMap {
             }
         }
         Ok(Some(Self {
+            largest_row_sums,
             phi,
             g0,
             g1,
@@ -1270,24 +1276,28 @@ impl SlipSampleMap {
             self.p0[j] = pa.get(j).copied().unwrap_or(0.0);
             self.p1[j] = pb.get(j).copied().unwrap_or(0.0);
         }
-        self.checks.gemv(1.0, &self.check_state, &self.x, 0.0);
-        self.checks.gemv(1.0, &self.check_p0, &self.p0, 1.0);
-        self.checks.gemv(1.0, &self.check_p1, &self.p1, 1.0);
-        self.checks.gemv(1.0, &self.check_b, &self.b, 1.0);
+        crate::dense::gemv(&mut self.checks, &self.check_state, &self.x, false);
+        crate::dense::gemv(&mut self.checks, &self.check_p0, &self.p0, true);
+        crate::dense::gemv(&mut self.checks, &self.check_p1, &self.p1, true);
+        crate::dense::gemv(&mut self.checks, &self.check_b, &self.b, true);
         let norms = [self.x.amax(), self.p0.amax(), self.p1.amax(), b_max];
+        let scale_of =
+            |sums: &[f64; 4]| -> f64 { sums.iter().zip(&norms).map(|(a, b)| a * b).sum() };
+        // The round-off scale of the worst row bounds every row's: most rows clear it.
+        let bound = SLIP_TEST_MARGIN * scale_of(&self.largest_row_sums);
         let r = self.friction.len();
         for (row, (delta, sums)) in self.checks.iter().zip(&self.row_sums).enumerate() {
-            let scale: f64 = sums.iter().zip(&norms).map(|(a, b)| a * b).sum();
+            let margin = self.signs[row % r] * delta;
             // Written so that a NaN fails the test too.
-            let clear = self.signs[row % r] * delta > SLIP_TEST_MARGIN * scale;
+            let clear = margin > bound || margin > SLIP_TEST_MARGIN * scale_of(sums);
             if !clear {
                 return false;
             }
         }
-        self.next.gemv(1.0, &self.phi, &self.x, 0.0);
-        self.next.gemv(1.0, &self.g0, &self.p0, 1.0);
-        self.next.gemv(1.0, &self.g1, &self.p1, 1.0);
-        self.next.gemv(1.0, &self.gb, &self.b, 1.0);
+        crate::dense::gemv(&mut self.next, &self.phi, &self.x, false);
+        crate::dense::gemv(&mut self.next, &self.g0, &self.p0, true);
+        crate::dense::gemv(&mut self.next, &self.g1, &self.p1, true);
+        crate::dense::gemv(&mut self.next, &self.gb, &self.b, true);
         s.u.copy_from(&self.next.rows(0, n));
         s.v.copy_from(&self.next.rows(n, n));
         s.a.copy_from(&self.next.rows(2 * n, n));

@@ -307,12 +307,12 @@ pub fn innovations(
     )?;
     let m = pred.whiten.nrows();
     let mut r = Vec::with_capacity(y.len() * m);
-    let mut e = DVector::zeros(m);
+    let (mut e, mut w) = (DVector::zeros(m), DVector::zeros(m));
     for (yi, zi) in y.iter().zip(response) {
         for k in 0..m {
             e[k] = zi[k] - yi[k];
         }
-        let w = &pred.whiten * &e;
+        crate::dense::gemv(&mut w, &pred.whiten, &e, false);
         r.extend(w.iter());
     }
     pred.project(&mut r);
