@@ -129,7 +129,7 @@ unsafe fn gemv_avx(
                 *ap.add(i) * *xp
             };
             for j in first..cols {
-                s = *ap.add(j * rows + i) * *xp.add(j) + s;
+                s += *ap.add(j * rows + i) * *xp.add(j);
             }
             *yp.add(i) = s;
             i += 1;
@@ -148,7 +148,7 @@ mod tests {
     #[test]
     fn gemv_equals_nalgebra_to_the_bit() {
         let mut rng = ChaCha8Rng::seed_from_u64(11);
-        let mut value = |rng: &mut ChaCha8Rng| -> f64 {
+        let value = |rng: &mut ChaCha8Rng| -> f64 {
             match rng.random_range(0..10) {
                 0 => 0.0,
                 1 => -0.0,

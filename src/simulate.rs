@@ -1210,9 +1210,9 @@ impl SlipSampleMap {
                 ]
             })
             .collect::<Vec<[f64; 4]>>();
-        let largest_row_sums = row_sums
-            .iter()
-            .fold([0.0f64; 4], |acc, s| std::array::from_fn(|k| acc[k].max(s[k])));
+        let largest_row_sums = row_sums.iter().fold([0.0f64; 4], |acc, s| {
+            std::array::from_fn(|k| acc[k].max(s[k]))
+        });
         // T^L by repeated squaring.
         let mut phi = DMatrix::<f64>::identity(3 * n, 3 * n);
         let (mut base, mut e) = (T, L);
