@@ -156,11 +156,12 @@ impl Stepper {
             self.v_t.copy_from(&state.v);
             self.v_t.axpy((1.0 - gamma) * h, &state.a, 1.0);
             // rhs = Lp p − Lc f − C ṽ − K ũ
-            self.rhs.gemv(1.0, &self.Lp, &self.p_t, 0.0);
-            self.rhs.gemv(-1.0, &self.Lc, f, 1.0);
-            self.rhs.gemv(-1.0, &self.C, &self.v_t, 1.0);
-            self.rhs.gemv(-1.0, &self.K, &self.u_t, 1.0);
-            state.a.gemv(1.0, &self.meff_inv, &self.rhs, 0.0);
+            use crate::dense::{Op, gemv};
+            gemv(&mut self.rhs, &self.Lp, &self.p_t, Op::Set);
+            gemv(&mut self.rhs, &self.Lc, f, Op::Subtract);
+            gemv(&mut self.rhs, &self.C, &self.v_t, Op::Subtract);
+            gemv(&mut self.rhs, &self.K, &self.u_t, Op::Subtract);
+            gemv(&mut state.a, &self.meff_inv, &self.rhs, Op::Set);
             state.u.copy_from(&self.u_t);
             state.u.axpy(beta * h * h, &state.a, 1.0);
             state.v.copy_from(&self.v_t);

@@ -605,9 +605,14 @@ impl TruthSystem {
         map.x.rows_mut(0, n).copy_from(&s.u);
         map.x.rows_mut(n, n).copy_from(&s.v);
         map.x.rows_mut(2 * n, n).copy_from(&s.a);
-        crate::dense::gemv(&mut map.free, &map.free_state, &map.x, false);
-        crate::dense::gemv(&mut map.free, &map.free_p0, &map.p0, true);
-        crate::dense::gemv(&mut map.free, &map.free_p1, &map.p1, true);
+        crate::dense::gemv(
+            &mut map.free,
+            &map.free_state,
+            &map.x,
+            crate::dense::Op::Set,
+        );
+        crate::dense::gemv(&mut map.free, &map.free_p0, &map.p0, crate::dense::Op::Add);
+        crate::dense::gemv(&mut map.free, &map.free_p1, &map.p1, crate::dense::Op::Add);
         for j in 0..steps {
             for c in 0..3 * q {
                 // The earlier sub-steps' forces: impulse k = j − i from sub-step i, as one
@@ -631,10 +636,15 @@ impl TruthSystem {
                 map.forces_reversed[m][steps - 1 - j] = self.work.f[m];
             }
         }
-        crate::dense::gemv(&mut map.next, &map.phi, &map.x, false);
-        crate::dense::gemv(&mut map.next, &map.g0, &map.p0, true);
-        crate::dense::gemv(&mut map.next, &map.g1, &map.p1, true);
-        crate::dense::gemv(&mut map.next, &map.force_to_end, &map.forces, true);
+        crate::dense::gemv(&mut map.next, &map.phi, &map.x, crate::dense::Op::Set);
+        crate::dense::gemv(&mut map.next, &map.g0, &map.p0, crate::dense::Op::Add);
+        crate::dense::gemv(&mut map.next, &map.g1, &map.p1, crate::dense::Op::Add);
+        crate::dense::gemv(
+            &mut map.next,
+            &map.force_to_end,
+            &map.forces,
+            crate::dense::Op::Add,
+        );
         s.u.copy_from(&map.next.rows(0, n));
         s.v.copy_from(&map.next.rows(n, n));
         s.a.copy_from(&map.next.rows(2 * n, n));
@@ -814,7 +824,7 @@ pub fn predictions_with_observer(
         for k in 0..m {
             innov[k] = y.get(k).copied().unwrap_or(0.0) - yhat[k];
         }
-        crate::dense::gemv(&mut dx, gain, &innov, false);
+        crate::dense::gemv(&mut dx, gain, &innov, crate::dense::Op::Set);
         // The whole correction, stuck joints included. It used to be removed along a
         // joint whose friction status was `Stick` at the sample's end (to keep it stuck),
         // which made the prediction jump between a friction level of 0 (no stick–slip
@@ -1276,10 +1286,30 @@ impl SlipSampleMap {
             self.p0[j] = pa.get(j).copied().unwrap_or(0.0);
             self.p1[j] = pb.get(j).copied().unwrap_or(0.0);
         }
-        crate::dense::gemv(&mut self.checks, &self.check_state, &self.x, false);
-        crate::dense::gemv(&mut self.checks, &self.check_p0, &self.p0, true);
-        crate::dense::gemv(&mut self.checks, &self.check_p1, &self.p1, true);
-        crate::dense::gemv(&mut self.checks, &self.check_b, &self.b, true);
+        crate::dense::gemv(
+            &mut self.checks,
+            &self.check_state,
+            &self.x,
+            crate::dense::Op::Set,
+        );
+        crate::dense::gemv(
+            &mut self.checks,
+            &self.check_p0,
+            &self.p0,
+            crate::dense::Op::Add,
+        );
+        crate::dense::gemv(
+            &mut self.checks,
+            &self.check_p1,
+            &self.p1,
+            crate::dense::Op::Add,
+        );
+        crate::dense::gemv(
+            &mut self.checks,
+            &self.check_b,
+            &self.b,
+            crate::dense::Op::Add,
+        );
         let norms = [self.x.amax(), self.p0.amax(), self.p1.amax(), b_max];
         let scale_of =
             |sums: &[f64; 4]| -> f64 { sums.iter().zip(&norms).map(|(a, b)| a * b).sum() };
@@ -1294,10 +1324,10 @@ impl SlipSampleMap {
                 return false;
             }
         }
-        crate::dense::gemv(&mut self.next, &self.phi, &self.x, false);
-        crate::dense::gemv(&mut self.next, &self.g0, &self.p0, true);
-        crate::dense::gemv(&mut self.next, &self.g1, &self.p1, true);
-        crate::dense::gemv(&mut self.next, &self.gb, &self.b, true);
+        crate::dense::gemv(&mut self.next, &self.phi, &self.x, crate::dense::Op::Set);
+        crate::dense::gemv(&mut self.next, &self.g0, &self.p0, crate::dense::Op::Add);
+        crate::dense::gemv(&mut self.next, &self.g1, &self.p1, crate::dense::Op::Add);
+        crate::dense::gemv(&mut self.next, &self.gb, &self.b, crate::dense::Op::Add);
         s.u.copy_from(&self.next.rows(0, n));
         s.v.copy_from(&self.next.rows(n, n));
         s.a.copy_from(&self.next.rows(2 * n, n));

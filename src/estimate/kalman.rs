@@ -472,7 +472,7 @@ impl ResidualEstimator for KalmanEstimator {
         self.nis_count += 1;
         // Update.
         self.z.copy_from(&self.zp);
-        self.z.gemv(1.0, &self.gain, &self.innov, 1.0);
+        crate::dense::gemv(&mut self.z, &self.gain, &self.innov, crate::dense::Op::Add);
         if self.z.iter().any(|x| !x.is_finite()) {
             return Err(EstimateError::Diverged { sample });
         }
@@ -525,11 +525,11 @@ impl ResidualEstimator for KalmanEstimator {
             let mut tmp = DVector::<f64>::zeros(nz);
             for i in (0..len).rev() {
                 let e = DVector::from_column_slice(&self.hist_innov[i * m..(i + 1) * m]);
-                tmp.gemv(1.0, &sm.psi_t, &lam, 0.0);
-                tmp.gemv(1.0, &sm.ht_sinv, &e, 1.0);
+                crate::dense::gemv(&mut tmp, &sm.psi_t, &lam, crate::dense::Op::Set);
+                crate::dense::gemv(&mut tmp, &sm.ht_sinv, &e, crate::dense::Op::Add);
                 std::mem::swap(&mut lam, &mut tmp);
                 let mut zi = DVector::from_column_slice(&self.hist_pred[i * nz..(i + 1) * nz]);
-                zi.gemv(1.0, &sm.p_prior, &lam, 1.0);
+                crate::dense::gemv(&mut zi, &sm.p_prior, &lam, crate::dense::Op::Add);
                 self.hist_pred[i * nz..(i + 1) * nz].copy_from_slice(zi.as_slice());
             }
             self.smoothed = true;

@@ -312,7 +312,7 @@ pub fn innovations(
         for k in 0..m {
             e[k] = zi[k] - yi[k];
         }
-        crate::dense::gemv(&mut w, &pred.whiten, &e, false);
+        crate::dense::gemv(&mut w, &pred.whiten, &e, crate::dense::Op::Set);
         r.extend(w.iter());
     }
     pred.project(&mut r);
