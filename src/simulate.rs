@@ -1122,8 +1122,9 @@ struct SlipSampleMap {
 const SLIP_TEST_MARGIN: f64 = 1e-11;
 
 impl SlipSampleMap {
-    /// `None` when the law has another term (`u³`, `a`, a gap), no friction is active, or
-    /// the model has no dense form.
+    /// `None` when the law has another term (`u³`, `a`, a gap), no friction is active, the
+    /// connections' compliance through the folded structure is not positive definite, or the
+    /// model has no dense form.
     fn new(
         setup: &Setup,
         model: &Model,
@@ -1173,6 +1174,17 @@ impl SlipSampleMap {
         let C = &model.C + lc * DMatrix::from_diagonal(&c) * lc.transpose();
         let meff = &model.M + &C * (gamma * h) + &K * (beta * h * h);
         let meff_inv = meff.try_inverse().ok_or(SimulateError::Singular)?;
+        // The slip test's uniqueness argument needs the connections' compliance through the
+        // folded structure, `Lcᵀ M_eff⁻¹ Lc`, positive definite (a stiffness or damper term
+        // negative enough to make it indefinite, as a descent may try, can make both slip
+        // directions consistent): otherwise every sample goes through the force solve.
+        let compliance = lc.transpose() * &meff_inv * lc;
+        if ((&compliance + compliance.transpose()) * 0.5)
+            .cholesky()
+            .is_none()
+        {
+            return Ok(None);
+        }
         let ne = model.Lp.ncols();
         // Inputs (p, b): the excitation and the constant connection forces (acting as −Lc b).
         let mut B = DMatrix::zeros(n, ne + q);
@@ -1837,6 +1849,38 @@ mod tests {
                     "{law}, {substeps} sub-steps: {stepped} of 299 samples by the slip map"
                 );
             }
+        }
+    }
+
+    /// The slip map is not used where its uniqueness argument fails: a spring term negative
+    /// enough to make the connection's compliance through the folded structure negative (a
+    /// descent's trial point can be anywhere) leaves every sample to the force solve.
+    #[test]
+    fn slip_map_declines_an_indefinite_folded_compliance() {
+        let toml = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/recordings/two-beam-friction.toml"
+        ))
+        .unwrap();
+        let setup = Setup::from_toml(&toml, "two-beam-friction.toml").unwrap();
+        let model = Model::assemble(&setup).unwrap();
+        let with_spring = |k: f64| -> Vec<f64> {
+            setup
+                .param_basis()
+                .iter()
+                .map(|b| match b {
+                    Basis::SignU => 3.0e3,
+                    Basis::U => k,
+                    _ => 0.0,
+                })
+                .collect()
+        };
+        for substeps in [1, 8] {
+            let map = |k: f64| {
+                SlipSampleMap::new(&setup, &model, &with_spring(k), setup.dt_s, substeps).unwrap()
+            };
+            assert!(map(3.0e5).is_some(), "{substeps} sub-steps");
+            assert!(map(-1.0e13).is_none(), "{substeps} sub-steps");
         }
     }
 
