@@ -1659,6 +1659,24 @@ pub fn simulate(setup: &Setup, opts: &SimulateOptions) -> Result<Simulated, Simu
 mod tests {
     use super::*;
 
+    /// The shipped friction setup's text (the paper's `sign(u)` joint).
+    fn shipped_friction_toml() -> String {
+        std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/recordings/two-beam-friction.toml"
+        ))
+        .unwrap()
+    }
+
+    /// The largest difference of two states' displacements, velocities or accelerations,
+    /// relative to the first's largest value of the same kind.
+    fn relative_difference(a: &State, b: &State) -> f64 {
+        [(&a.u, &b.u), (&a.v, &b.v), (&a.a, &b.a)]
+            .iter()
+            .map(|(x, y)| (*x - *y).amax() / x.amax().max(f64::MIN_POSITIVE))
+            .fold(0.0, f64::max)
+    }
+
     /// A random excitation of `samples` samples on `ne` channels: 0 at the first sample, then
     /// normal with std `rms` (seeded).
     fn random_excitation(ne: usize, samples: usize, rms: f64, seed: u64) -> Vec<Vec<f64>> {
@@ -1728,11 +1746,7 @@ mod tests {
     /// agree to 1e-9 of their RMS and the statuses are the same.
     #[test]
     fn composed_substeps_equal_the_implicit_substeps_for_friction_and_cubic_laws() {
-        let mut toml = std::fs::read_to_string(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/recordings/two-beam-friction.toml"
-        ))
-        .unwrap();
+        let mut toml = shipped_friction_toml();
         toml.push_str(
             "\n[[connections]]\nname = \"cubic9\"\ndof = { node = 9, dir = \"w\" }\n\
              basis = [\"u\", \"u3\"]\ntruth = [2.0e4, 5.0e10]\n",
@@ -1764,9 +1778,7 @@ mod tests {
                     .unwrap();
                 assert_eq!(slow.status, fast.status, "{substeps} sub-steps, sample {i}");
                 stuck += usize::from(slow.status[0] == Status::Stick);
-                for (x, y) in [(&a.u, &b.u), (&a.v, &b.v), (&a.a, &b.a)] {
-                    worst = worst.max((x - y).amax() / x.amax().max(f64::MIN_POSITIVE));
-                }
+                worst = worst.max(relative_difference(&a, &b));
             }
             assert!(
                 worst <= 1e-9,
@@ -1790,11 +1802,7 @@ mod tests {
     /// and sticks) to the force solve.
     #[test]
     fn slip_map_steps_exactly_the_samples_that_slip_one_way() {
-        let toml = std::fs::read_to_string(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/recordings/two-beam-friction.toml"
-        ))
-        .unwrap();
+        let toml = shipped_friction_toml();
         for (law, level) in [("sign(u)", 3.0e3), ("sign(v)", 1.0e3)] {
             let text = toml.replace("\"sign(u)\"", &format!("\"{law}\""));
             let setup = Setup::from_toml(&text, "two-beam-friction.toml").unwrap();
@@ -1836,9 +1844,7 @@ mod tests {
                         Status::Slip(sign),
                         "{law}, {substeps} sub-steps, sample {i}"
                     );
-                    for (x, y) in [(&a.u, &b.u), (&a.v, &b.v), (&a.a, &b.a)] {
-                        worst = worst.max((x - y).amax() / x.amax().max(f64::MIN_POSITIVE));
-                    }
+                    worst = worst.max(relative_difference(&a, &b));
                 }
                 assert!(
                     worst <= 1e-9,
@@ -1857,11 +1863,7 @@ mod tests {
     /// descent's trial point can be anywhere) leaves every sample to the force solve.
     #[test]
     fn slip_map_declines_an_indefinite_folded_compliance() {
-        let toml = std::fs::read_to_string(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/recordings/two-beam-friction.toml"
-        ))
-        .unwrap();
+        let toml = shipped_friction_toml();
         let setup = Setup::from_toml(&toml, "two-beam-friction.toml").unwrap();
         let model = Model::assemble(&setup).unwrap();
         let with_spring = |k: f64| -> Vec<f64> {
