@@ -438,6 +438,7 @@ pub(super) fn refine_by_prediction_error(
         opts.output_error_iterations,
         opts.initial_state.as_deref(),
     )?;
+    crate::par::phase("pem refine", t0);
     // A start in motion that the first sample did not show, tested at the refined values
     // (at the start values a parameter error leaves a transient that a start state also
     // fits: measured at rest, 64-sub-step data at 100 % noise, 5 of 8 records passed the
@@ -447,7 +448,6 @@ pub(super) fn refine_by_prediction_error(
     // vibration also fits) is seen again at the likeliest level before it is called motion
     // (measured at rest, 64-sub-step data at 100 % noise: flagged at the kept 16 or 32
     // sub-steps, ACCURACY.md).
-    crate::par::phase("pem refine", t0);
     if opts.initial_state.is_none() {
         let mut tests = Vec::new();
         let mut motion = start_motion(
