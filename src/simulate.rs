@@ -882,6 +882,66 @@ pub fn law_is_linear(setup: &Setup) -> bool {
     })
 }
 
+/// A connection law as the composed maps ([`LinearSampleMap`], [`SlipSampleMap`]) use it:
+/// per connection the `u` and `v` coefficients (folded into the structure), the `const`
+/// terms' force, and the active frictions `(connection, on the rate, level)`.
+struct FoldedLaw {
+    k: DVector<f64>,
+    c: DVector<f64>,
+    const_force: DVector<f64>,
+    friction: Vec<(usize, bool, f64)>,
+}
+
+impl FoldedLaw {
+    /// `None` when a term is not `u`, `v`, `const` or a non-negative `sign` level (`u³`,
+    /// `a`, a gap, a negative friction).
+    fn of(setup: &Setup, params: &[f64]) -> Result<Option<Self>, SimulateError> {
+        let q = setup.connections.len();
+        let mut law = Self {
+            k: DVector::zeros(q),
+            c: DVector::zeros(q),
+            const_force: DVector::zeros(q),
+            friction: Vec::new(),
+        };
+        let mut off = 0;
+        for (ci, conn) in setup.connections.iter().enumerate() {
+            let Some(p) = params.get(off..off + conn.basis.len()) else {
+                return Err(SimulateError::NoTruth(conn.name.clone()));
+            };
+            off += conn.basis.len();
+            for (b, &pj) in conn.basis.iter().zip(p) {
+                match b {
+                    Basis::U => law.k[ci] += pj,
+                    Basis::V => law.c[ci] += pj,
+                    Basis::Const(x) => law.const_force[ci] += x * pj,
+                    Basis::SignU | Basis::SignV if pj == 0.0 => {}
+                    Basis::SignU | Basis::SignV if pj > 0.0 => {
+                        law.friction.push((ci, *b == Basis::SignV, pj));
+                    }
+                    _ => return Ok(None),
+                }
+            }
+        }
+        Ok(Some(law))
+    }
+
+    /// The structure with the linear terms folded in: `K' = K + Lc diag(k) Lcᵀ`,
+    /// `C' = C + Lc diag(c) Lcᵀ`, and Newmark's effective mass `M + γh C' + βh² K'`.
+    fn structure(
+        &self,
+        model: &Model,
+        gamma: f64,
+        beta: f64,
+        h: f64,
+    ) -> (DMatrix<f64>, DMatrix<f64>, DMatrix<f64>) {
+        let lc = &model.Lc;
+        let K = &model.K + lc * DMatrix::from_diagonal(&self.k) * lc.transpose();
+        let C = &model.C + lc * DMatrix::from_diagonal(&self.c) * lc.transpose();
+        let meff = &model.M + &C * (gamma * h) + &K * (beta * h * h);
+        (K, C, meff)
+    }
+}
+
 /// The Newmark sub-steps of one sample interval composed into one affine map, for a linear
 /// connection law (`u`, `v`, `const` terms only) folded into the model:
 /// `K' = K + Lc diag(k) Lcᵀ`, `C' = C + Lc diag(c) Lcᵀ`, the constant force a second input.
@@ -922,38 +982,24 @@ impl LinearSampleMap {
         if q != setup.connections.len() {
             return Ok(None);
         }
-        let mut k = DVector::zeros(q);
-        let mut c = DVector::zeros(q);
-        let mut f_const = DVector::zeros(q);
-        let mut off = 0;
-        for (ci, conn) in setup.connections.iter().enumerate() {
-            let Some(p) = params.get(off..off + conn.basis.len()) else {
-                return Err(SimulateError::NoTruth(conn.name.clone()));
-            };
-            off += conn.basis.len();
-            for (b, &pj) in conn.basis.iter().zip(p) {
-                match b {
-                    Basis::U => k[ci] += pj,
-                    Basis::V => c[ci] += pj,
-                    Basis::Const(x) => f_const[ci] += x * pj,
-                    Basis::SignU | Basis::SignV if pj == 0.0 => {}
-                    _ => return Ok(None),
-                }
-            }
+        let Some(law) = FoldedLaw::of(setup, params)? else {
+            return Ok(None);
+        };
+        if !law.friction.is_empty() {
+            return Ok(None);
         }
+        let f_const = &law.const_force;
         let Newmark = setup.newmark;
         let (gamma, beta) = (Newmark.gamma, Newmark.beta);
         let h = dt_s / substeps as f64;
         let lc = &model.Lc;
-        let K = &model.K + lc * DMatrix::from_diagonal(&k) * lc.transpose();
-        let C = &model.C + lc * DMatrix::from_diagonal(&c) * lc.transpose();
-        let meff = &model.M + &C * (gamma * h) + &K * (beta * h * h);
+        let (K, C, meff) = law.structure(model, gamma, beta, h);
         let meff_inv = meff.try_inverse().ok_or(SimulateError::Singular)?;
         let ne = model.Lp.ncols();
         // Inputs p̃ = (p, 1): the excitation and the constant connection force.
         let mut B = DMatrix::zeros(n, ne + 1);
         B.columns_mut(0, ne).copy_from(&model.Lp);
-        B.column_mut(ne).copy_from(&(-(lc * &f_const)));
+        B.column_mut(ne).copy_from(&(-(lc * f_const)));
         let (T, Q) = newmark_substep_map(&meff_inv, &C, &K, &B, h, gamma, beta);
         // Compose the s sub-steps with p̃(t_k) = (1 − t_k) p̃_{i−1} + t_k p̃_i, t_k = k/s.
         let mut phi = DMatrix::<f64>::identity(3 * n, 3 * n);
@@ -1136,7 +1182,7 @@ struct SlipSampleMap {
     /// `δ` (or `δ̇`) of each friction from the state (`r × 3n`).
     select: DMatrix<f64>,
     /// The `const` terms' force per connection.
-    const_force: Vec<f64>,
+    const_force: DVector<f64>,
     /// Work vectors.
     b: DVector<f64>,
     checks: DVector<f64>,
@@ -1173,39 +1219,22 @@ impl SlipSampleMap {
         if q != setup.connections.len() {
             return Ok(None);
         }
-        let mut k = DVector::zeros(q);
-        let mut c = DVector::zeros(q);
-        let mut const_force = vec![0.0; q];
-        let mut friction = Vec::new();
-        let mut off = 0;
-        for (ci, conn) in setup.connections.iter().enumerate() {
-            let Some(p) = params.get(off..off + conn.basis.len()) else {
-                return Err(SimulateError::NoTruth(conn.name.clone()));
-            };
-            off += conn.basis.len();
-            for (b, &pj) in conn.basis.iter().zip(p) {
-                match b {
-                    Basis::U => k[ci] += pj,
-                    Basis::V => c[ci] += pj,
-                    Basis::Const(x) => const_force[ci] += x * pj,
-                    Basis::SignU | Basis::SignV if pj == 0.0 => {}
-                    Basis::SignU | Basis::SignV if pj > 0.0 => {
-                        friction.push((ci, *b == Basis::SignV, pj));
-                    }
-                    _ => return Ok(None),
-                }
-            }
-        }
-        if friction.is_empty() {
+        let Some(law) = FoldedLaw::of(setup, params)? else {
+            return Ok(None);
+        };
+        if law.friction.is_empty() {
             return Ok(None);
         }
         let Newmark = setup.newmark;
         let (gamma, beta) = (Newmark.gamma, Newmark.beta);
         let h = dt_s / substeps as f64;
         let lc = &model.Lc;
-        let K = &model.K + lc * DMatrix::from_diagonal(&k) * lc.transpose();
-        let C = &model.C + lc * DMatrix::from_diagonal(&c) * lc.transpose();
-        let meff = &model.M + &C * (gamma * h) + &K * (beta * h * h);
+        let (K, C, meff) = law.structure(model, gamma, beta, h);
+        let FoldedLaw {
+            const_force,
+            friction,
+            ..
+        } = law;
         // A singular folded structure (a trial point of a descent can make it so) only
         // declines the map: the force solve works on the unfolded one.
         let Some(meff_inv) = meff.try_inverse() else {
@@ -1711,6 +1740,29 @@ mod tests {
         .unwrap()
     }
 
+    /// The shipped friction setup with a second connection `name` at node 9 (`basis` and
+    /// `truth` as TOML arrays), its model, and the truth of both connections.
+    fn friction_setup_and_second_connection(
+        name: &str,
+        basis: &str,
+        truth: &str,
+    ) -> (Setup, Model, Vec<f64>) {
+        let mut toml = shipped_friction_toml();
+        toml.push_str(&format!(
+            "\n[[connections]]\nname = \"{name}\"\ndof = {{ node = 9, dir = \"w\" }}\n\
+             basis = {basis}\ntruth = {truth}\n"
+        ));
+        let setup = Setup::from_toml(&toml, "two-beam-friction+second.toml").unwrap();
+        let model = Model::assemble(&setup).unwrap();
+        assert_eq!(model.Lc.ncols(), 2);
+        let params = setup
+            .connections
+            .iter()
+            .flat_map(|c| c.truth.clone().unwrap())
+            .collect();
+        (setup, model, params)
+    }
+
     /// The largest difference of two states' displacements, velocities or accelerations,
     /// relative to the first's largest value of the same kind.
     fn relative_difference(a: &State, b: &State) -> f64 {
@@ -1789,19 +1841,8 @@ mod tests {
     /// agree to 1e-9 of their largest values and the statuses are the same.
     #[test]
     fn composed_substeps_equal_the_implicit_substeps_for_friction_and_cubic_laws() {
-        let mut toml = shipped_friction_toml();
-        toml.push_str(
-            "\n[[connections]]\nname = \"cubic9\"\ndof = { node = 9, dir = \"w\" }\n\
-             basis = [\"u\", \"u3\"]\ntruth = [2.0e4, 5.0e10]\n",
-        );
-        let setup = Setup::from_toml(&toml, "two-beam-friction+cubic.toml").unwrap();
-        let model = Model::assemble(&setup).unwrap();
-        assert_eq!(model.Lc.ncols(), 2);
-        let params: Vec<f64> = setup
-            .connections
-            .iter()
-            .flat_map(|c| c.truth.clone().unwrap())
-            .collect();
+        let (setup, model, params) =
+            friction_setup_and_second_connection("cubic9", "[\"u\", \"u3\"]", "[2.0e4, 5.0e10]");
         let ne = model.Lp.ncols();
         let exc = random_excitation(ne, 200, 1.5e3, 3);
         for substeps in [2, 8] {
@@ -1840,10 +1881,9 @@ mod tests {
     /// Coulomb `sign(v)` friction, random excitation that makes them stick and slip, 1, 8
     /// and 64 sub-steps, 300 samples. Each sample starts both paths from the sub-step
     /// path's state; where the map steps, the end states agree to 1e-9 of their largest
-    /// value and the
-    /// force solve ended slipping the same way. The map must step a good part of the samples
-    /// (measured 83–180 of 299 on this vigorous excitation) and leave the others (reversals
-    /// and sticks) to the force solve.
+    /// value and the force solve ended slipping the same way. The map must step a good part
+    /// of the samples (measured 83–180 of 299 on this vigorous excitation) and leave the
+    /// others (reversals and sticks) to the force solve.
     #[test]
     fn slip_map_steps_exactly_the_samples_that_slip_one_way() {
         let toml = shipped_friction_toml();
@@ -1923,19 +1963,11 @@ mod tests {
     /// above, and the second connection stays free of friction.
     #[test]
     fn slip_map_with_a_second_linear_connection() {
-        let mut toml = shipped_friction_toml();
-        toml.push_str(
-            "\n[[connections]]\nname = \"spring9\"\ndof = { node = 9, dir = \"w\" }\n\
-             basis = [\"sign(v)\", \"u\", \"const(10)\"]\ntruth = [0.0, 2.0e4, 1.0]\n",
+        let (setup, model, params) = friction_setup_and_second_connection(
+            "spring9",
+            "[\"sign(v)\", \"u\", \"const(10)\"]",
+            "[0.0, 2.0e4, 1.0]",
         );
-        let setup = Setup::from_toml(&toml, "two-beam-friction+spring.toml").unwrap();
-        let model = Model::assemble(&setup).unwrap();
-        assert_eq!(model.Lc.ncols(), 2);
-        let params: Vec<f64> = setup
-            .connections
-            .iter()
-            .flat_map(|c| c.truth.clone().unwrap())
-            .collect();
         let map = SlipSampleMap::new(&setup, &model, &params, setup.dt_s, 8)
             .unwrap()
             .unwrap();
