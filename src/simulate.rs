@@ -1301,18 +1301,7 @@ impl SlipSampleMap {
         let largest_row_sums = row_sums.iter().fold([0.0f64; 4], |acc, s| {
             std::array::from_fn(|k| acc[k].max(s[k]))
         });
-        // T^L by repeated squaring.
-        let mut phi = DMatrix::<f64>::identity(3 * n, 3 * n);
-        let (mut base, mut e) = (T, L);
-        while e > 0 {
-            if e & 1 == 1 {
-                phi = &phi * &base;
-            }
-            e >>= 1;
-            if e > 0 {
-                base = &base * &base;
-            }
-        }
+        let phi = matrix_power(T, L);
         Ok(Some(Self {
             largest_row_sums,
             phi,
@@ -1426,6 +1415,21 @@ impl SlipSampleMap {
             .zip(&self.signs)
             .map(|(&(ci, ..), &s)| (ci, s))
     }
+}
+
+/// `Tᴸ` by repeated squaring (the sample map of `L` equal sub-steps).
+fn matrix_power(mut base: DMatrix<f64>, mut e: usize) -> DMatrix<f64> {
+    let mut power = DMatrix::<f64>::identity(base.nrows(), base.ncols());
+    while e > 0 {
+        if e & 1 == 1 {
+            power = &power * &base;
+        }
+        e >>= 1;
+        if e > 0 {
+            base = &base * &base;
+        }
+    }
+    power
 }
 
 /// One Newmark sub-step of step `h` as a linear map of `x = (u; u̇; ü)` and the input `p`
@@ -1574,18 +1578,7 @@ impl ComposedSubsteps {
                 col = &T * &col;
             }
         }
-        // T^L by repeated squaring.
-        let mut phi = DMatrix::<f64>::identity(3 * n, 3 * n);
-        let (mut base, mut e) = (T, L);
-        while e > 0 {
-            if e & 1 == 1 {
-                phi = &phi * &base;
-            }
-            e >>= 1;
-            if e > 0 {
-                base = &base * &base;
-            }
-        }
+        let phi = matrix_power(T, L);
         Self {
             substeps: L,
             q,
