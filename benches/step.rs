@@ -57,6 +57,7 @@ fn bench_step(c: &mut Criterion) {
                         model_error_std: 1e-3,
                         smooth: false,
                         semi_implicit: true,
+                        likelihood_only: false,
                     },
                     0,
                 )

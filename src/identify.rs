@@ -534,6 +534,7 @@ pub fn build_estimator(
                 model_error_std: opts.model_error_std.unwrap_or(MODEL_ERROR_RELATIVE * scale),
                 smooth: true,
                 semi_implicit: opts.semi_implicit,
+                likelihood_only: false,
             };
             let mut est = KalmanEstimator::with_options(inputs, ko, samples)?;
             if let Some(x) = &opts.initial_state {
@@ -608,6 +609,7 @@ fn kalman_log_likelihood(
         model_error_std: model_error,
         smooth: false,
         semi_implicit: opts.semi_implicit,
+        likelihood_only: true,
     };
     let Ok(mut est) = KalmanEstimator::with_options(inputs, ko, 0) else {
         return f64::NEG_INFINITY;

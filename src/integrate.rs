@@ -48,11 +48,9 @@ impl State {
     }
 
     pub fn is_finite(&self) -> bool {
-        self.u
+        [&self.u, &self.v, &self.a]
             .iter()
-            .chain(self.v.iter())
-            .chain(self.a.iter())
-            .all(|x| x.is_finite())
+            .all(|w| w.as_slice().iter().all(|x| x.is_finite()))
     }
 
     /// Value of one station channel.

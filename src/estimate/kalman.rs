@@ -117,6 +117,12 @@ pub struct KalmanOptions {
     /// Evaluate the non-linear connection force at the predicted state of each sample
     /// instead of the previous sample's estimate.
     pub semi_implicit: bool,
+    /// Build only what the innovation likelihood needs (gain, innovation covariance and its
+    /// log determinant): the likelihood tuning's filter-only runs. Skipped: the closed
+    /// loop's spectral radius (24 squarings of the `(3n+q)²` matrix, as much work as the
+    /// Riccati solve), the posterior deformation stds and the sensitivity SVDs — such an
+    /// estimator's diagnostics carry none of them (`error_spectral_radius` is `None`).
+    pub likelihood_only: bool,
 }
 
 impl KalmanEstimator {
@@ -132,6 +138,7 @@ impl KalmanEstimator {
             model_error_std: MODEL_ERROR_RELATIVE * scale,
             smooth: true,
             semi_implicit: true,
+            likelihood_only: false,
         };
         Self::with_options(inp, opts, samples)
     }
@@ -196,11 +203,29 @@ impl KalmanEstimator {
         let innov_inv = chol.inverse();
         let log_det = 2.0 * chol.l().diagonal().iter().map(|x| x.ln()).sum::<f64>();
         let gain = &P * H.transpose() * &innov_inv;
-        let p_post = (DMatrix::identity(nz, nz) - &gain * &H) * &P;
-        let closed = (DMatrix::identity(nz, nz) - &gain * &H) * &A;
-        let rho = spectral_radius_by_powers(&closed);
+        let opts = KalmanOptions {
+            smooth: opts.smooth && !opts.likelihood_only,
+            ..opts
+        };
+        let full = !opts.likelihood_only;
+        let p_post = if full {
+            (DMatrix::identity(nz, nz) - &gain * &H) * &P
+        } else {
+            P.clone()
+        };
+        let rho = if full {
+            let closed = (DMatrix::identity(nz, nz) - &gain * &H) * &A;
+            spectral_radius_by_powers(&closed)
+        } else {
+            f64::NAN
+        };
         let ht_sinv = H.transpose() * &innov_inv;
-        let psi = &A * (DMatrix::identity(nz, nz) - &gain * &H);
+        // Ψ is the smoother's (and its Stein equation's) only.
+        let psi = if opts.smooth {
+            &A * (DMatrix::identity(nz, nz) - &gain * &H)
+        } else {
+            DMatrix::zeros(0, 0)
+        };
         // Steady-state smoothed covariance P⁻ − P⁻ Λ P⁻ with Λ = HᵀΣ⁻¹H + Ψᵀ Λ Ψ (Stein
         // equation, by doubling); it gives the posterior uncertainty of δ and δ̇.
         // The doubling only converges when Ψ is strictly stable; with the residual force's
@@ -251,14 +276,20 @@ impl KalmanEstimator {
             m,
             inp.channel_sigma.iter().map(|s| 1.0 / s),
         ));
-        let (rank, condition, _) = super::rank_and_condition(&(&w * &Sx));
-        let (_, _, s_gain) = super::rank_and_condition(&Sx);
+        let ((rank, condition, _), (_, _, s_gain)) = if full {
+            (
+                super::rank_and_condition(&(&w * &Sx)),
+                super::rank_and_condition(&Sx),
+            )
+        } else {
+            ((0, f64::NAN, f64::NAN), (0, f64::NAN, f64::NAN))
+        };
         let mut diag = EstimatorDiagnostics {
             estimator: "kalman".into(),
             sensitivity_rank: rank,
             sensitivity_condition: condition,
             sensitivity_gain: s_gain,
-            error_spectral_radius: Some(rho),
+            error_spectral_radius: full.then_some(rho),
             tuning: vec![
                 ("force_walk_std_N".into(), opts.force_walk_std),
                 ("model_error_std_N".into(), opts.model_error_std),
@@ -856,9 +887,10 @@ fn filter_dare_doubling(
     for _ in 0..DARE_MAX_STEPS {
         steps += 1;
         let w = &id + &Gk * &Hk;
-        let Some(lu) = Some(w.lu()) else { break };
-        let Some(wa) = lu.solve(&Ak) else { break };
-        let Some(wg) = lu.solve(&Gk) else { break };
+        let lu = w.lu();
+        let solver = crate::dense::LuSolver::new(&lu);
+        let Some(wa) = solver.solve(&Ak) else { break };
+        let Some(wg) = solver.solve(&Gk) else { break };
         let a_next = &Ak * &wa;
         let g_next = &Gk + &Ak * wg * Ak.transpose();
         let h_next = &Hk + Ak.transpose() * &Hk * &wa;

@@ -33,7 +33,7 @@ use super::output_error::scaled_inverse;
 use crate::integrate::Stepper;
 use crate::model::Model;
 use crate::setup::{Basis, Setup};
-use crate::simulate::{SimulateError, predictions_with_observer};
+use crate::simulate::{SimulateError, each_prediction_with_observer};
 
 /// The fixed observer of the predictor.
 #[derive(Debug, Clone)]
@@ -294,7 +294,10 @@ pub fn innovations(
     substeps: usize,
 ) -> Result<(Vec<f64>, f64), SimulateError> {
     let basis = setup.param_basis();
-    let y = predictions_with_observer(
+    let m = pred.whiten.nrows();
+    let mut r = Vec::with_capacity(excitation.len() * m);
+    let (mut e, mut w) = (DVector::zeros(m), DVector::zeros(m));
+    each_prediction_with_observer(
         setup,
         model,
         &feasible(&basis, params),
@@ -304,17 +307,15 @@ pub fn innovations(
         substeps,
         &pred.gain,
         pred.initial.as_deref(),
+        &mut |i, yi| {
+            let zi = &response[i];
+            for k in 0..m {
+                e[k] = zi[k] - yi[k];
+            }
+            crate::dense::gemv(&mut w, &pred.whiten, &e, crate::dense::Op::Set);
+            r.extend(w.iter());
+        },
     )?;
-    let m = pred.whiten.nrows();
-    let mut r = Vec::with_capacity(y.len() * m);
-    let (mut e, mut w) = (DVector::zeros(m), DVector::zeros(m));
-    for (yi, zi) in y.iter().zip(response) {
-        for k in 0..m {
-            e[k] = zi[k] - yi[k];
-        }
-        crate::dense::gemv(&mut w, &pred.whiten, &e, crate::dense::Op::Set);
-        r.extend(w.iter());
-    }
     pred.project(&mut r);
     let cost: f64 = r.iter().map(|x| x * x).sum();
     if !cost.is_finite() {

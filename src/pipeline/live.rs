@@ -836,6 +836,7 @@ fn online_estimator(
                 model_error_std: opts.model_error_std.unwrap_or(MODEL_ERROR_RELATIVE * scale),
                 smooth: false,
                 semi_implicit: true,
+                likelihood_only: false,
             };
             Box::new(KalmanEstimator::with_options(inputs, ko, 0)?)
         }
