@@ -445,9 +445,13 @@ fn jacobian(
     exc: &[Vec<f64>],
     resp: &[Vec<f64>],
     substeps: usize,
+    base: Option<(Vec<f64>, f64)>,
 ) -> Result<Jac, SimulateError> {
     // The base point and every displaced point are independent simulations: run them on
-    // parallel threads (`crate::par`), then difference.
+    // parallel threads (`crate::par`), then difference. `base`: the innovations and cost at
+    // `p` with this predictor when the caller has them (an accepted descent step's trial
+    // run, the Jacobian just made at the same point) — the same run, not made twice: four
+    // parameters' central differences are then 8 runs, 4 rounds on two cores instead of 5.
     let steps: Vec<f64> = (0..p.len())
         .map(|j| {
             (SECANT * scales[j].abs())
@@ -455,7 +459,12 @@ fn jacobian(
                 .max(f64::MIN_POSITIVE.sqrt())
         })
         .collect();
-    let mut points: Vec<Vec<f64>> = vec![p.to_vec()];
+    let have_base = base.is_some();
+    let mut points: Vec<Vec<f64>> = if have_base {
+        Vec::new()
+    } else {
+        vec![p.to_vec()]
+    };
     for j in 0..p.len() {
         let mut plus = p.to_vec();
         plus[j] += steps[j];
@@ -471,10 +480,10 @@ fn jacobian(
         innovations(setup, model, q, pred, exc, resp, substeps)
     })
     .into_iter();
-    let Some(base) = runs.next() else {
-        return Err(SimulateError::Singular);
+    let (r, cost) = match base {
+        Some(known) => known,
+        None => runs.next().ok_or(SimulateError::Singular)??,
     };
-    let (r, cost) = base?;
     let mut cols = Vec::with_capacity(p.len());
     for j in 0..p.len() {
         let h = steps[j];
@@ -695,7 +704,7 @@ pub fn refine(
             pred.concentrate(excitation.len());
         }
         let mut J = jacobian(
-            setup, model, &basis, &p, &scales, &pred, excitation, response, substeps,
+            setup, model, &basis, &p, &scales, &pred, excitation, response, substeps, None,
         )?;
         if cost_start.is_none() {
             cost_start = Some(J.cost / nobs);
@@ -723,10 +732,10 @@ pub fn refine(
                         .map(|(a, b)| a + b)
                         .collect::<Vec<_>>(),
                 );
-                let c = innovations(setup, model, &trial, &pred, excitation, response, substeps)
-                    .map(|x| x.1)
-                    .unwrap_or(f64::INFINITY);
-                if c < J.cost {
+                let run = innovations(setup, model, &trial, &pred, excitation, response, substeps)
+                    .ok();
+                let c = run.as_ref().map_or(f64::INFINITY, |x| x.1);
+                if let Some(run) = run.filter(|_| c < J.cost) {
                     let bound = scaled_inverse(&F)
                         .map(|i| (0..p.len()).map(|a| i[(a, a)].max(0.0).sqrt()).collect())
                         .unwrap_or_else(|| vec![f64::INFINITY; p.len()]);
@@ -734,20 +743,31 @@ pub fn refine(
                         .iter()
                         .zip(&bound)
                         .all(|(d, b): (&f64, &f64)| d.abs() <= 0.05 * b);
-                    stepped = Some((trial, small));
+                    stepped = Some((trial, small, run));
                     mu = (mu / 10.0).max(1e-9);
                     break;
                 }
                 mu *= 10.0;
             }
-            let Some((trial, small)) = stepped else { break };
+            let Some((trial, small, run)) = stepped else {
+                break;
+            };
             p = trial;
             moved = true;
             if let Some((_, naive, _)) = sandwich(&J, m) {
                 scales = at_least(&naive);
             }
             J = jacobian(
-                setup, model, &basis, &p, &scales, &pred, excitation, response, substeps,
+                setup,
+                model,
+                &basis,
+                &p,
+                &scales,
+                &pred,
+                excitation,
+                response,
+                substeps,
+                Some(run),
             )?;
             if small {
                 break;
@@ -790,7 +810,7 @@ pub fn refine(
             .map(|x| x * POLISH_SECANT / SECANT)
             .collect();
         let Ok(J2) = jacobian(
-            setup, model, &basis, &trial, &width, &pred, excitation, response, substeps,
+            setup, model, &basis, &trial, &width, &pred, excitation, response, substeps, None,
         ) else {
             break;
         };
@@ -816,6 +836,7 @@ pub fn refine(
             excitation,
             response,
             substeps,
+            Some((J.r.clone(), J.cost)),
         ) {
             J = J2;
         }
@@ -829,6 +850,7 @@ pub fn refine(
             excitation,
             response,
             substeps,
+            Some((J.r.clone(), J.cost)),
         )
         .ok();
     }
