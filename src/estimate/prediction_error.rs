@@ -333,6 +333,10 @@ pub fn innovations(
 /// use wider ones ([`POLISH_SECANT`], [`ERROR_SECANTS`]).
 const SECANT: f64 = 0.5;
 
+/// Damped steps tried per Levenberg–Marquardt iteration (μ raised tenfold after each that
+/// does not lower the cost) before the descent stops.
+const LM_TRIES: usize = 8;
+
 /// Secant Gauss–Newton iterations after the Levenberg–Marquardt descent, without its
 /// "the cost must go down" test: the innovation cost is still rough at a fraction of a
 /// standard error (each zero crossing of δ that moves across a sub-step boundary is a small
@@ -459,6 +463,7 @@ fn jacobian(
                 .max(f64::MIN_POSITIVE.sqrt())
         })
         .collect();
+    let t0 = std::time::Instant::now();
     let have_base = base.is_some();
     let mut points: Vec<Vec<f64>> = if have_base {
         Vec::new()
@@ -500,6 +505,7 @@ fn jacobian(
         };
         cols.push(col);
     }
+    crate::par::phase(if have_base { "jacobian (base known)" } else { "jacobian" }, t0);
     Ok(Jac { r, cols, cost })
 }
 
@@ -714,28 +720,45 @@ pub fn refine(
         for _ in 0..max_iter {
             iterations += 1;
             let (F, g) = normal(&J);
-            let mut stepped = None;
-            for _ in 0..8 {
+            // The damped steps of the Levenberg–Marquardt sequence (μ, 10μ, … eight of them;
+            // a singular damped matrix skips its μ), tried in that order: the first whose
+            // cost is lower is taken. Their runs are independent, so they are evaluated a
+            // batch of one per core at a time and the first success in the order wins — the
+            // same step as one after the other, sooner: near the optimum of the rough cost
+            // every step fails and the eight runs were the descent's serial time (measured
+            // 100,000 samples: 15 failed trials, 1.4 s of 6.1 s on one core of two).
+            let mut candidates = Vec::new();
+            let mut damping = mu;
+            for _ in 0..LM_TRIES {
                 let mut A = F.clone();
                 for d in 0..A.nrows() {
-                    A[(d, d)] *= 1.0 + mu;
+                    A[(d, d)] *= 1.0 + damping;
                 }
-                let Some(inv) = scaled_inverse(&A) else {
-                    mu *= 10.0;
-                    continue;
-                };
-                let dp = &inv * &g;
-                let trial = feasible(
-                    &basis,
-                    &p.iter()
-                        .zip(dp.iter())
-                        .map(|(a, b)| a + b)
-                        .collect::<Vec<_>>(),
-                );
-                let run = innovations(setup, model, &trial, &pred, excitation, response, substeps)
-                    .ok();
-                let c = run.as_ref().map_or(f64::INFINITY, |x| x.1);
-                if let Some(run) = run.filter(|_| c < J.cost) {
+                if let Some(inv) = scaled_inverse(&A) {
+                    let dp = &inv * &g;
+                    let trial = feasible(
+                        &basis,
+                        &p.iter()
+                            .zip(dp.iter())
+                            .map(|(a, b)| a + b)
+                            .collect::<Vec<_>>(),
+                    );
+                    candidates.push((trial, dp, damping));
+                }
+                damping *= 10.0;
+            }
+            let mut stepped = None;
+            for batch in candidates.chunks(crate::par::threads().max(1)) {
+                let t0 = std::time::Instant::now();
+                let runs = crate::par::map(batch, |(trial, _, _)| {
+                    innovations(setup, model, trial, &pred, excitation, response, substeps).ok()
+                });
+                crate::par::phase("descent trials", t0);
+                let first = batch
+                    .iter()
+                    .zip(runs)
+                    .find_map(|(cand, run)| run.filter(|r| r.1 < J.cost).map(|r| (cand, r)));
+                if let Some(((trial, dp, used), run)) = first {
                     let bound = scaled_inverse(&F)
                         .map(|i| (0..p.len()).map(|a| i[(a, a)].max(0.0).sqrt()).collect())
                         .unwrap_or_else(|| vec![f64::INFINITY; p.len()]);
@@ -743,11 +766,10 @@ pub fn refine(
                         .iter()
                         .zip(&bound)
                         .all(|(d, b): (&f64, &f64)| d.abs() <= 0.05 * b);
-                    stepped = Some((trial, small, run));
-                    mu = (mu / 10.0).max(1e-9);
+                    stepped = Some((trial.clone(), small, run));
+                    mu = (used / 10.0).max(1e-9);
                     break;
                 }
-                mu *= 10.0;
             }
             let Some((trial, small, run)) = stepped else {
                 break;
