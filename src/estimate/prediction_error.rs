@@ -731,11 +731,11 @@ pub fn refine(
             // parameter within 0.05 of its naive error, the test that ends the descent after
             // a step is taken): a shorter one would not count as a move. Measured (100,000
             // samples): near the optimum the Gauss–Newton step was 0.002–0.05 errors, the
-            // rough cost refused all eight damped steps and their runs were 0.8 s of the
-            // descent's 4.7 s.
-            // The runs are independent, so they are evaluated a batch of one per core at a
-            // time and the first success in the order wins — the same step as one after the
-            // other, sooner.
+            // rough cost refused every damped step, and the 15 refused runs were 1.4 s of
+            // the descent's 6.1 s.
+            // (Evaluated one after the other: trying two at once on the two cores was no
+            // faster — this machine's two vCPUs run two simulations at 1.17× the throughput
+            // of one, BENCHMARKS.md — and wastes the second when the first succeeds.)
             let bound: Vec<f64> = scaled_inverse(&F)
                 .map(|i| (0..p.len()).map(|a| i[(a, a)].max(0.0).sqrt()).collect())
                 .unwrap_or_else(|| vec![f64::INFINITY; p.len()]);
@@ -769,18 +769,13 @@ pub fn refine(
                 damping *= 10.0;
             }
             let mut stepped = None;
-            for batch in candidates.chunks(crate::par::threads().max(1)) {
+            for (trial, small, used) in candidates {
                 let t0 = std::time::Instant::now();
-                let runs = crate::par::map(batch, |(trial, _, _)| {
-                    innovations(setup, model, trial, &pred, excitation, response, substeps).ok()
-                });
-                crate::par::phase("descent trials", t0);
-                let first = batch
-                    .iter()
-                    .zip(runs)
-                    .find_map(|(cand, run)| run.filter(|r| r.1 < J.cost).map(|r| (cand, r)));
-                if let Some(((trial, small, used), run)) = first {
-                    stepped = Some((trial.clone(), *small, run));
+                let run =
+                    innovations(setup, model, &trial, &pred, excitation, response, substeps).ok();
+                crate::par::phase("descent trial", t0);
+                if let Some(run) = run.filter(|r| r.1 < J.cost) {
+                    stepped = Some((trial, small, run));
                     mu = (used / 10.0).max(1e-9);
                     break;
                 }
