@@ -229,7 +229,7 @@ impl<'a> LuSolver<'a> {
 }
 
 /// `Aᵀ` for a square `A` (a plain loop: nalgebra's `transpose` indexes element by element).
-fn transposed(a: &DMatrix<f64>) -> DMatrix<f64> {
+pub fn transposed(a: &DMatrix<f64>) -> DMatrix<f64> {
     let n = a.nrows();
     let src = a.as_slice();
     let mut t = vec![0.0; src.len()];
@@ -239,6 +239,21 @@ fn transposed(a: &DMatrix<f64>) -> DMatrix<f64> {
         }
     }
     DMatrix::from_vec(n, a.ncols(), t)
+}
+
+/// `(A + Aᵀ)/2` for a square `A`, bit for bit nalgebra's `(&a + a.transpose()) * 0.5`
+/// (each element `(a_ij + a_ji) · 0.5`) without its two temporaries.
+pub fn symmetrized(a: &DMatrix<f64>) -> DMatrix<f64> {
+    let n = a.nrows();
+    assert!(a.is_square(), "symmetrized: a square matrix");
+    let src = a.as_slice();
+    let mut out = vec![0.0; src.len()];
+    for j in 0..n {
+        for i in 0..n {
+            out[j * n + i] = (src[j * n + i] + src[i * n + j]) * 0.5;
+        }
+    }
+    DMatrix::from_vec(n, n, out)
 }
 
 /// [`substitute`] in AVX registers: [`LANES`] columns solved together (their elements of
@@ -467,5 +482,22 @@ mod tests {
             lu.solve(&b).is_none(),
             LuSolver::new(&lu).solve(&b).is_none()
         );
+    }
+
+    /// [`transposed`] and [`symmetrized`] equal nalgebra's `transpose` and
+    /// `(&a + a.transpose()) * 0.5` to the bit.
+    #[test]
+    fn transpose_and_symmetrize_equal_nalgebra_to_the_bit() {
+        let mut rng = ChaCha8Rng::seed_from_u64(13);
+        for n in 0..=12 {
+            let a = DMatrix::from_fn(n, n, |_, _| {
+                rng.random_range(-1.0..1.0) * 10f64.powi(rng.random_range(-20..20))
+            });
+            assert_eq!(transposed(&a), a.transpose());
+            let want = (&a + a.transpose()) * 0.5;
+            for (g, w) in symmetrized(&a).iter().zip(want.iter()) {
+                assert_eq!(g.to_bits(), w.to_bits());
+            }
+        }
     }
 }

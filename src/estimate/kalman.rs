@@ -892,8 +892,9 @@ fn filter_dare_doubling(
         let Some(wa) = solver.solve(&Ak) else { break };
         let Some(wg) = solver.solve(&Gk) else { break };
         let a_next = &Ak * &wa;
-        let g_next = &Gk + &Ak * wg * Ak.transpose();
-        let h_next = &Hk + Ak.transpose() * &Hk * &wa;
+        let akt = crate::dense::transposed(&Ak);
+        let g_next = &Gk + &Ak * wg * &akt;
+        let h_next = &Hk + &akt * &Hk * &wa;
         let change = (&h_next - &Hk).amax();
         let scale = h_next.amax().max(f64::MIN_POSITIVE);
         if change >= last_change
@@ -905,8 +906,8 @@ fn filter_dare_doubling(
         last_change = change;
         peak_change = peak_change.max(change);
         Ak = a_next;
-        Gk = (&g_next + g_next.transpose()) * 0.5;
-        Hk = (&h_next + h_next.transpose()) * 0.5;
+        Gk = crate::dense::symmetrized(&g_next);
+        Hk = crate::dense::symmetrized(&h_next);
         if change <= 1e-14 * scale {
             break;
         }

@@ -509,7 +509,14 @@ fn jacobian(
         };
         cols.push(col);
     }
-    crate::par::phase(if have_base { "jacobian (base known)" } else { "jacobian" }, t0);
+    crate::par::phase(
+        if have_base {
+            "jacobian (base known)"
+        } else {
+            "jacobian"
+        },
+        t0,
+    );
     Ok(Jac { r, cols, cost })
 }
 
