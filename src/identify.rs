@@ -1358,6 +1358,27 @@ fn fallback_words(opts: &IdentifyOptions) -> &'static str {
     }
 }
 
+/// The observer force, relative to the model's force scale, above which the prediction
+/// error's answer is measured biased.
+const OBSERVER_BIAS_SCALE: f64 = 10.0;
+
+/// A warning when the prediction error's observer force (N per sample) exceeds
+/// [`OBSERVER_BIAS_SCALE`] × the model's force scale (`kalman::force_scale_of`). Why:
+/// measured on the two-beam model at 100 % noise (ACCURACY.md, "The observer-force bias"),
+/// the joint damper `v` (truth 0) came out +3.0 to +39.7 standard errors off at forces of
+/// 3.4e4–8.4e5 N (19–480× the scale, 50,000 samples) and `u` up to +4.9, while at
+/// ≤ 1.6e4 N (9×) every parameter of 1 and 10 % noise records stayed within 0.93 errors:
+/// the observer feeds the measurement noise into the model state and the fit finds a damper
+/// for its energy. Not fixed yet; said rather than hidden.
+fn observer_force_warning(force_std: f64, force_scale: f64) -> Option<String> {
+    let ratio = force_std / force_scale;
+    (ratio > OBSERVER_BIAS_SCALE).then(|| {
+        format!(
+            "warning: the prediction error's observer force ({force_std:.3e} N per sample) is {ratio:.0}× the model's force scale (above {OBSERVER_BIAS_SCALE}×): at such forces its answers have been measured biased — a joint damper `v` upwards by 3–40 standard errors, `u` by up to 5 (two-beam model, 100 % noise; ACCURACY.md, \"The observer-force bias\") — so read the law's linear terms as biased and their errors as too small; more samples do not help (the bias stays, the errors shrink), less noise does"
+        )
+    })
+}
+
 /// After the passes: the Cramér–Rao bound of every parameter and, when enabled, the
 /// output-error refinement (see `estimate::output_error`). Either failing leaves the
 /// residual-force estimate in place with a note.
@@ -1498,6 +1519,12 @@ fn finish_with_output_error(
                         .collect::<Vec<_>>()
                         .join(", ")
                 ));
+                if let Some(w) = observer_force_warning(
+                    rep.force_std,
+                    crate::estimate::kalman::force_scale_of(model),
+                ) {
+                    result.notes.push(w);
+                }
                 if r.initial_state.is_some() {
                     result.initial_state = r.initial_state.clone();
                 }
@@ -2427,5 +2454,13 @@ mod tests {
         assert!((36.0..46.0).contains(&one), "{one}");
         let twelve = chi2_upper_quantile(12, START_TEST_Z);
         assert!((twelve - 65.7).abs() < 0.04 * 65.7, "{twelve}");
+    }
+
+    /// The observer-force warning starts above ten force scales and names the parameters.
+    #[test]
+    fn observer_force_warning_above_ten_force_scales() {
+        assert!(observer_force_warning(1.6e4, 1.75e3).is_none());
+        let w = observer_force_warning(3.4e4, 1.75e3).expect("19× the scale");
+        assert!(w.contains("19×") && w.contains("`v`"), "{w}");
     }
 }
