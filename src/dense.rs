@@ -228,17 +228,17 @@ impl<'a> LuSolver<'a> {
     }
 }
 
-/// `Aᵀ` for a square `A` (a plain loop: nalgebra's `transpose` indexes element by element).
+/// `Aᵀ` (a plain loop: nalgebra's `transpose` indexes element by element).
 pub fn transposed(a: &DMatrix<f64>) -> DMatrix<f64> {
-    let n = a.nrows();
+    let (rows, cols) = a.shape();
     let src = a.as_slice();
     let mut t = vec![0.0; src.len()];
-    for (j, col) in src.chunks_exact(n.max(1)).enumerate() {
-        for (i, v) in col.iter().enumerate() {
-            t[i * n + j] = *v;
+    for j in 0..cols {
+        for i in 0..rows {
+            t[i * cols + j] = src[j * rows + i];
         }
     }
-    DMatrix::from_vec(n, a.ncols(), t)
+    DMatrix::from_vec(cols, rows, t)
 }
 
 /// `(A + Aᵀ)/2` for a square `A`, bit for bit nalgebra's `(&a + a.transpose()) * 0.5`
@@ -490,6 +490,10 @@ mod tests {
     fn transpose_and_symmetrize_equal_nalgebra_to_the_bit() {
         let mut rng = ChaCha8Rng::seed_from_u64(13);
         for n in 0..=12 {
+            for cols in [0, 1, n, n + 3] {
+                let a = DMatrix::from_fn(n, cols, |_, _| rng.random_range(-1.0..1.0));
+                assert_eq!(transposed(&a), a.transpose(), "{n}×{cols}");
+            }
             let a = DMatrix::from_fn(n, n, |_, _| {
                 rng.random_range(-1.0..1.0) * 10f64.powi(rng.random_range(-20..20))
             });
