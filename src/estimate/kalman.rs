@@ -211,7 +211,7 @@ impl KalmanEstimator {
         let p_post = if full {
             (DMatrix::identity(nz, nz) - &gain * &H) * &P
         } else {
-            P.clone()
+            DMatrix::zeros(0, 0)
         };
         let rho = if full {
             let closed = (DMatrix::identity(nz, nz) - &gain * &H) * &A;
@@ -264,7 +264,13 @@ impl KalmanEstimator {
                 })
                 .collect()
         };
-        let (delta_std, delta_v_std) = (conn_std(0), conn_std(n));
+        // A likelihood-only estimator has no posterior covariance: its deformation stds are
+        // not known (NaN), not the prior's.
+        let (delta_std, delta_v_std) = if full {
+            (conn_std(0), conn_std(n))
+        } else {
+            (vec![f64::NAN; q], vec![f64::NAN; q])
+        };
         let smoother = opts.smooth.then(|| Smoother {
             psi_t: psi.transpose(),
             ht_sinv,
@@ -1075,6 +1081,69 @@ dt_s = 0.001
             t.iter()
                 .any(|(k, v)| k == "tuned_force_walk_std_N" && *v > 0.0)
         );
+    }
+
+    /// A likelihood-only estimator (the tuning's runs) gives the full construction's
+    /// innovation log-likelihood to the bit, and claims no spectral radius or posterior
+    /// deformation std it did not compute.
+    #[test]
+    fn likelihood_only_gives_the_same_likelihood() {
+        use crate::setup::Setup;
+        use crate::simulate::{Noise, Scenario, SimulateOptions, simulate};
+        let s = Setup::from_toml(SDOF_FRICTION, "t").unwrap();
+        let steps = 500;
+        let sim = simulate(
+            &s,
+            &SimulateOptions {
+                scenario: Scenario::Random { rms: 20.0 },
+                steps,
+                dt_s: s.dt_s,
+                substeps: 4,
+                noise: Noise::Additive(0.01),
+                seed: 5,
+            },
+        )
+        .unwrap();
+        let model = crate::model::Model::for_identification(&s).unwrap();
+        let params = s.initial_params();
+        let with_terms = model.with_connection_terms(&s, &params);
+        let run = |likelihood_only: bool| {
+            let inputs = EstimatorInputs {
+                model: &with_terms,
+                law: ConnectionLaw::new(&s, &params),
+                dt_s: s.dt_s,
+                substeps: 1,
+                newmark: s.newmark,
+                weighting: s.estimator.weighting,
+                channel_sigma: vec![1e-3; s.sensors.len()],
+                spectral_diagnostics: false,
+            };
+            let ko = KalmanOptions {
+                force_walk_std: 3.0,
+                model_error_std: 1e-3,
+                smooth: false,
+                semi_implicit: true,
+                likelihood_only,
+            };
+            let mut est = KalmanEstimator::with_options(inputs, ko, 0).unwrap();
+            let mut out = StepOutput::new(1);
+            est.start(0, &sim.excitation[0]);
+            for i in 1..steps {
+                est.step(i as u64, &sim.excitation[i], &sim.response[i], &mut out)
+                    .unwrap();
+            }
+            (
+                est.log_likelihood(),
+                est.diagnostics().clone(),
+                est.connection_std().0[0],
+            )
+        };
+        let (full, full_diag, full_std) = run(false);
+        let (only, only_diag, only_std) = run(true);
+        assert!(full.is_finite());
+        assert_eq!(full.to_bits(), only.to_bits(), "{full} vs {only}");
+        assert!(full_diag.error_spectral_radius.is_some() && full_std.is_finite());
+        assert!(only_diag.error_spectral_radius.is_none() && only_std.is_nan());
     }
 
     #[test]
