@@ -237,7 +237,7 @@ const START_MOTION_Z: f64 = 3.090_2;
 #[derive(Debug)]
 pub(super) enum PemStage {
     /// The refinement and the model sub-steps it used.
-    Refined(crate::estimate::prediction_error::PemRefined, usize),
+    Refined(Box<crate::estimate::prediction_error::PemRefined>, usize),
     /// Not refined: the record starts in motion (seen by [`start_motion`]).
     InMotion(super::MotionInRecord),
 }
@@ -477,7 +477,7 @@ pub(super) fn refine_by_prediction_error(
         }
         r.report.start_at_rest_tests = tests;
     }
-    Ok(PemStage::Refined(r, sub))
+    Ok(PemStage::Refined(Box::new(r), sub))
 }
 
 #[cfg(test)]
@@ -502,6 +502,7 @@ mod tests {
                 hac_lag: 6,
                 sandwich_ratio: vec![1.0, 1.0],
                 start_at_rest_tests: Vec::new(),
+                noise_shift: None,
             },
         }
     }
