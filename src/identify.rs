@@ -1544,6 +1544,11 @@ fn finish_with_output_error(
                         .notes
                         .push(noise_shift_note(&keys, shift, &r.std_errors));
                 }
+                if let Some(why) = rep.noise_shift_failure.as_ref() {
+                    result.notes.push(format!(
+                        "warning: the measurement noise's shift through the observer could not be measured ({why}): the law's linear terms are uncorrected and can be biased by it (ACCURACY.md, \"The observer-force bias, corrected\")"
+                    ));
+                }
                 if let Some(w) = observer_force_warning(
                     rep.force_std,
                     crate::estimate::kalman::force_scale_of(model),

@@ -402,8 +402,12 @@ pub struct PredictionErrorReport {
     pub start_at_rest_tests: Vec<StartAtRestTest>,
     /// The shift of the estimate that the measurement noise causes through the observer,
     /// per parameter (its units), subtracted from the answer (see `noise_bias`); `None` when
-    /// it could not be computed (the answer is then uncorrected).
+    /// it could not be computed (the answer is then uncorrected) or the law has no term
+    /// linear in the state.
     pub noise_shift: Option<Vec<f64>>,
+    /// Why the noise shift could not be computed, when it could not (said in a note: the
+    /// uncorrected answer can be biased).
+    pub noise_shift_failure: Option<String>,
 }
 
 /// One likelihood-ratio test of a start at rest on the innovations: the cost a refitted start
@@ -943,8 +947,10 @@ pub fn refine(
         &J.r,
     );
     crate::par::phase("noise bias", t0);
+    let mut noise_shift_failure = None;
     let noise_shift = match shift {
-        Ok((shift, shift_se)) => {
+        Ok(None) => None,
+        Ok(Some((shift, shift_se))) => {
             p = feasible(
                 &basis,
                 &p.iter().zip(&shift).map(|(a, b)| a - b).collect::<Vec<_>>(),
@@ -954,7 +960,10 @@ pub fn refine(
             }
             Some(shift)
         }
-        Err(_) => None,
+        Err(e) => {
+            noise_shift_failure = Some(e.to_string());
+            None
+        }
     };
     // A friction level on its bound 0: the estimate is one-sided and the sandwich's
     // curvature is not its error (a boundary estimate is not normal). Its error is kept at
@@ -1016,6 +1025,7 @@ pub fn refine(
             hac_lag: lag,
             sandwich_ratio: se.iter().zip(&naive).map(|(a, b)| a / b).collect(),
             noise_shift,
+            noise_shift_failure,
             start_at_rest_tests: Vec::new(),
         },
         values: p,
@@ -1024,13 +1034,16 @@ pub fn refine(
     })
 }
 
+/// Per parameter: the noise shift and its standard error ([`noise_bias`]).
+type NoiseShift = (Vec<f64>, Vec<f64>);
+
 /// Seed of the synthetic measurement noise of [`noise_bias`] (fixed: the same record gives
 /// the same answer on every run).
 const NOISE_BIAS_SEED: u64 = 0x006a_6f69_6e74_6964;
 
 /// The shift of the prediction-error estimate that the measurement noise causes through the
 /// observer, and the standard error of that figure, at `p` (both per parameter; zero for
-/// every term but those linear in the state).
+/// every term but those linear in the state; `None` when the law has none).
 ///
 /// Why: the observer feeds the measurement noise into the model's state, and the noise's
 /// share of the innovations depends on the parameters: for a law linear in the state the
@@ -1084,7 +1097,7 @@ fn noise_bias(
     lag: usize,
     information: &DMatrix<f64>,
     real_innovations: &[f64],
-) -> Result<(Vec<f64>, Vec<f64>), SimulateError> {
+) -> Result<Option<NoiseShift>, SimulateError> {
     use rand::{RngExt, SeedableRng};
     let n_par = p.len();
     let m = sigma.len();
@@ -1093,7 +1106,7 @@ fn noise_bias(
         .filter(|&a| matches!(basis[a], Basis::U | Basis::V | Basis::A))
         .collect();
     if scored.is_empty() || samples == 0 {
-        return Ok((vec![0.0; n_par], vec![0.0; n_par]));
+        return Ok(None);
     }
     // The noise record's model: friction levels and constant forces at 0, so that without
     // excitation the model stays at rest and its innovations are the noise's alone.
@@ -1232,7 +1245,7 @@ fn noise_bias(
         se[fa] = cov[(a, a)].max(0.0).sqrt();
     }
     if out.iter().chain(&se).all(|x| x.is_finite()) {
-        Ok((out, se))
+        Ok(Some((out, se)))
     } else {
         Err(SimulateError::Singular)
     }

@@ -503,6 +503,7 @@ mod tests {
                 sandwich_ratio: vec![1.0, 1.0],
                 start_at_rest_tests: Vec::new(),
                 noise_shift: None,
+                noise_shift_failure: None,
             },
         }
     }
