@@ -215,6 +215,48 @@ fn feasible(basis: &[Basis], p: &[f64]) -> Vec<f64> {
         .collect()
 }
 
+/// The Gauss–Newton (or damped) step `A⁻¹g` with every friction level that sits on its
+/// bound 0 and whose step would go below it held at 0 (an active set): the other parameters'
+/// step is solved with it held, not taken from the unconstrained step and the level then
+/// clipped. Why: on data without friction (the spring setup, truth 0) the unconstrained step
+/// kept pushing the level below 0, the clip put it back, the step never fell below the
+/// convergence tolerance, and the descent and the polish ran to their iteration limits
+/// (measured: 24 Jacobians, 3.4 s of a 4.1 s identification at 64 sub-steps), each time
+/// moving the other parameters by their correlation with a level that cannot move.
+/// `None` if the free block is singular.
+fn bounded_step(
+    A: &DMatrix<f64>,
+    g: &DVector<f64>,
+    p: &[f64],
+    basis: &[Basis],
+) -> Option<DVector<f64>> {
+    let n = p.len();
+    let mut held = vec![false; n];
+    loop {
+        let free: Vec<usize> = (0..n).filter(|&j| !held[j]).collect();
+        let mut dp = DVector::zeros(n);
+        if free.is_empty() {
+            return Some(dp);
+        }
+        let Af = DMatrix::from_fn(free.len(), free.len(), |a, b| A[(free[a], free[b])]);
+        let gf = DVector::from_fn(free.len(), |a, _| g[free[a]]);
+        let step = scaled_inverse(&Af)? * gf;
+        for (a, &j) in free.iter().enumerate() {
+            dp[j] = step[a];
+        }
+        let pinned: Vec<usize> = free
+            .into_iter()
+            .filter(|&j| is_sign(&basis[j]) && p[j] <= 0.0 && dp[j] < 0.0)
+            .collect();
+        if pinned.is_empty() {
+            return Some(dp);
+        }
+        for j in pinned {
+            held[j] = true;
+        }
+    }
+}
+
 /// The observer for the law `params` (its linear terms) with process-noise force `force_std`
 /// (N per sample) at the connections and channel noise `sigma`.
 pub fn predictor(
@@ -766,8 +808,7 @@ pub fn refine(
                 for d in 0..A.nrows() {
                     A[(d, d)] *= 1.0 + damping;
                 }
-                if let Some(inv) = scaled_inverse(&A) {
-                    let dp = &inv * &g;
+                if let Some(dp) = bounded_step(&A, &g, &p, &basis) {
                     let trial = feasible(
                         &basis,
                         &p.iter()
@@ -833,7 +874,9 @@ pub fn refine(
         let (F, g) = normal(&J);
         let Some(inv) = scaled_inverse(&F) else { break };
         let naive: Vec<f64> = (0..p.len()).map(|a| inv[(a, a)].max(0.0).sqrt()).collect();
-        let dp = &inv * &g;
+        let Some(dp) = bounded_step(&F, &g, &p, &basis) else {
+            break;
+        };
         // Clip the step to POLISH_TRUST naive errors (the secant is only a local model).
         let worst = dp
             .iter()
@@ -1257,6 +1300,27 @@ mod tests {
     use rand::{RngExt, SeedableRng};
     use rand_chacha::ChaCha8Rng;
     use rand_distr::StandardNormal;
+
+    /// A friction level on its bound whose step would go below it is held at 0 and the
+    /// other parameter's step is the reduced system's (not the unconstrained step's); off
+    /// the bound, or stepping up, the step is the plain one.
+    #[test]
+    fn a_level_on_its_bound_is_held_and_the_others_step_without_it() {
+        let A = DMatrix::from_row_slice(2, 2, &[2.0, 1.0, 1.0, 2.0]);
+        let g = DVector::from_row_slice(&[-3.0, 1.0]);
+        let basis = [Basis::SignU, Basis::U];
+        // Unconstrained: A⁻¹g = (−7/3, 5/3).
+        let free = bounded_step(&A, &g, &[1.0, 0.0], &basis).unwrap();
+        assert!((free[0] + 7.0 / 3.0).abs() < 1e-12 && (free[1] - 5.0 / 3.0).abs() < 1e-12);
+        // On the bound: held; the stiffness solves 2·d = 1.
+        let held = bounded_step(&A, &g, &[0.0, 0.0], &basis).unwrap();
+        assert_eq!(held[0], 0.0);
+        assert!((held[1] - 0.5).abs() < 1e-12);
+        // On the bound but stepping up: free.
+        let g_up = DVector::from_row_slice(&[3.0, 1.0]);
+        let up = bounded_step(&A, &g_up, &[0.0, 0.0], &basis).unwrap();
+        assert!((up[0] - 5.0 / 3.0).abs() < 1e-12 && (up[1] + 1.0 / 3.0).abs() < 1e-12);
+    }
 
     /// Variable projection is exact for a law linear in the state: the innovations
     /// concentrated over the start state from a wrong start equal those of a run from the

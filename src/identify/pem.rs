@@ -39,6 +39,14 @@ const MAX_PEM_LEVEL: usize = 64;
 /// identification (17 innovation runs at each of 7 levels, 127 sub-steps per sample in all).
 const LEVEL_CHOICE_SAMPLES: usize = 2_000;
 
+/// Samples on which the observer force is searched near the level choice's coarse value (a
+/// prefix of longer records), as the Kalman tuning's `TUNE_SAMPLES`: the force is a tuning
+/// of the observer, set by how far the start's model is from the data per sample — the same
+/// along a stationary record — and any stable observer gives a consistent estimate (the
+/// noise's shift through it is removed, `prediction_error::noise_bias`). Why: the search on
+/// the whole record was 11 runs, 0.6 s of a 100,000-sample identification (7.4 s).
+const FORCE_TUNE_SAMPLES: usize = 10_000;
+
 /// Range and grid of the observer's process-noise tuning, relative to the model's force
 /// scale (`kalman::force_scale_of`, 1.75e3 N on the two-beam model): 1e-2 … 1e3 of it,
 /// 11 grid points (half decades) then 6 golden-section steps in log space.
@@ -62,6 +70,59 @@ enum ForceSearch {
 /// points (half decades) instead of 11: the re-tune was 17 % of a 20,000-sample
 /// identification.
 const NEAR_DECADES: f64 = 1.0;
+
+/// The Gaussian innovation log-likelihood `−½ Σᵢ (|S^{-1/2}eᵢ|² + log det S)` of the start
+/// values `start` with `substeps` model sub-steps and the observer of process-noise force
+/// `force_std` (concentrated over the start state for a record in motion); −∞ when the run
+/// fails.
+#[allow(clippy::too_many_arguments)]
+fn pem_log_likelihood(
+    setup: &Setup,
+    model: &Model,
+    data: &TestData,
+    sigma: &[f64],
+    start: &[f64],
+    substeps: usize,
+    initial: Option<&[f64]>,
+    force_std: f64,
+) -> f64 {
+    use crate::estimate::prediction_error::{innovations, predictor};
+    let n = data.len() as f64;
+    let Ok(mut pred) = predictor(setup, model, start, sigma, substeps, force_std) else {
+        return f64::NEG_INFINITY;
+    };
+    pred.initial = initial.map(<[f64]>::to_vec);
+    let Ok((r, c)) = innovations(
+        setup,
+        model,
+        start,
+        &pred,
+        &data.excitation,
+        &data.response,
+        substeps,
+    ) else {
+        return f64::NEG_INFINITY;
+    };
+    // A record in motion: the likelihood concentrated over the start state (the cost its
+    // least-squares refit removes).
+    let c = if pred.initial.is_some() {
+        // Not concentrated (the fit failed): not comparable with the others.
+        match pred.refit_initial_state(&r) {
+            Some(reduction) => c - reduction,
+            None => return f64::NEG_INFINITY,
+        }
+    } else {
+        c
+    };
+    let log_det: f64 = -2.0
+        * pred
+            .whiten
+            .diagonal()
+            .iter()
+            .map(|x| x.abs().ln())
+            .sum::<f64>();
+    -0.5 * (c + n * log_det)
+}
 
 /// The observer's process-noise force (N per sample at the connections) that maximises the
 /// Gaussian innovation likelihood `−½ Σᵢ (|S^{-1/2}eᵢ|² + log det S)` of the *start* values
@@ -90,44 +151,9 @@ fn tune_pem_force(
     initial: Option<&[f64]>,
     search: ForceSearch,
 ) -> (f64, f64) {
-    use crate::estimate::prediction_error::{innovations, predictor};
     let scale = crate::estimate::kalman::force_scale_of(model);
-    let n = data.len() as f64;
     let loglik = |fs: f64| -> f64 {
-        let Ok(mut pred) = predictor(setup, model, start, sigma, substeps, fs) else {
-            return f64::NEG_INFINITY;
-        };
-        pred.initial = initial.map(<[f64]>::to_vec);
-        let Ok((r, c)) = innovations(
-            setup,
-            model,
-            start,
-            &pred,
-            &data.excitation,
-            &data.response,
-            substeps,
-        ) else {
-            return f64::NEG_INFINITY;
-        };
-        // A record in motion: the likelihood concentrated over the start state (the cost
-        // its least-squares refit removes).
-        let c = if pred.initial.is_some() {
-            // Not concentrated (the fit failed): not comparable with the others.
-            match pred.refit_initial_state(&r) {
-                Some(reduction) => c - reduction,
-                None => return f64::NEG_INFINITY,
-            }
-        } else {
-            c
-        };
-        let log_det: f64 = -2.0
-            * pred
-                .whiten
-                .diagonal()
-                .iter()
-                .map(|x| x.abs().ln())
-                .sum::<f64>();
-        -0.5 * (c + n * log_det)
+        pem_log_likelihood(setup, model, data, sigma, start, substeps, initial, fs)
     };
     let (lo, hi, grid, golden) = match search {
         ForceSearch::Near(f) if f.is_finite() && f > 0.0 => (
@@ -385,20 +411,30 @@ pub(super) fn refine_by_prediction_error(
         .copied()
         .find(|t| t.2 >= best - significant)
         .unwrap_or((opts.substeps, 0.0, f64::NEG_INFINITY));
-    // The chosen level's force, searched again near the coarse one on the whole record (and
-    // the likelihood of the start values there).
+    // The chosen level's force, searched again near the coarse one on the first
+    // [`FORCE_TUNE_SAMPLES`] (see there), and the likelihood of the start values with it on
+    // the whole record (one more run when the search saw a prefix).
+    let force_prefix = data.prefix(FORCE_TUNE_SAMPLES);
     let near = |level: usize, coarse_force: f64| {
         if tuned.iter().any(|t| t.0 == level) {
-            tune_pem_force(
+            let initial = opts.initial_state.as_deref();
+            let (force, likelihood) = tune_pem_force(
                 setup,
                 model,
-                data,
+                force_prefix.as_ref().unwrap_or(data),
                 sigma,
                 start,
                 level,
-                opts.initial_state.as_deref(),
+                initial,
                 ForceSearch::Near(coarse_force),
-            )
+            );
+            if force_prefix.is_some() {
+                let whole =
+                    pem_log_likelihood(setup, model, data, sigma, start, level, initial, force);
+                (force, whole)
+            } else {
+                (force, likelihood)
+            }
         } else {
             (coarse_force, f64::NEG_INFINITY)
         }
