@@ -659,7 +659,6 @@ pub const TUNE_SAMPLES: usize = 10_000;
 /// scale over ± [`WARM_NOISE_DECADES`] (half-decade grids, [`WARM_GOLDEN`] golden steps
 /// each), 26 filter runs instead of 56; when an optimum lands on the edge of its narrowed
 /// range the full search is run instead (it moved too far for a warm start to be trusted).
-#[allow(clippy::too_many_arguments)]
 pub fn tune_kalman(
     setup: &Setup,
     model: &Model,
