@@ -653,141 +653,7 @@ pub const TUNE_SAMPLES: usize = 10_000;
 /// likelihood of filter-only runs: σ_R over a log grid of 1e-6…1e2 × the force scale with
 /// golden-section refinement, then the noise scale over 1e-8…1e1, then σ_R again around
 /// the new optimum.
-///
-/// With `previous` (the last pass's tuning: a re-tuning after the parameters moved) the
-/// search is warm: σ_R over [`WARM_WALK_DECADES`] around the previous value, then the noise
-/// scale over ± [`WARM_NOISE_DECADES`] (half-decade grids, [`WARM_GOLDEN`] golden steps
-/// each), 26 filter runs instead of 56; when an optimum lands on the edge of its narrowed
-/// range the full search is run instead (it moved too far for a warm start to be trusted).
 pub fn tune_kalman(
-    setup: &Setup,
-    model: &Model,
-    params: &[f64],
-    opts: &IdentifyOptions,
-    sigma: &[f64],
-    estimated: &[bool],
-    data: &TestData,
-    previous: Option<&KalmanTuning>,
-) -> Result<KalmanTuning, EstimateError> {
-    if let Some(prev) = previous
-        && let Some(t) = tune_kalman_warm(setup, model, params, opts, sigma, estimated, data, prev)
-    {
-        return Ok(t);
-    }
-    tune_kalman_full(setup, model, params, opts, sigma, estimated, data)
-}
-
-/// Range, in decades below and above the previous pass's σ_R, of a warm re-tuning's σ_R
-/// search. Why lopsided: a pass takes model error out of the residual force (its parameters
-/// come nearer the truth), so the random walk the likelihood wants mostly falls. Measured
-/// on the shipped friction recording: 3.4e4 N (pass 1, from the start values) → 660 N
-/// (pass 2) → 619 N (pass 3); the noise scale did not move at all.
-const WARM_WALK_DECADES: [f64; 2] = [3.0, 1.0];
-
-/// Half-width, in decades, of a warm re-tuning's noise-scale search (the scale is a property
-/// of the sensors more than of the parameters).
-const WARM_NOISE_DECADES: f64 = 1.0;
-
-/// Golden-section steps of a warm search (after its 5-point half-decade grid): the last
-/// bracket is 0.618⁴ of a decade wide, well inside what the passes resolve (the likelihood is
-/// flat near its optimum; the full search's 10–12 steps set the first tuning).
-const WARM_GOLDEN: usize = 6;
-
-/// The warm re-tuning of [`tune_kalman`]; `None` when an optimum reached the edge of its
-/// narrowed range or no likelihood was finite.
-#[allow(clippy::too_many_arguments)]
-fn tune_kalman_warm(
-    setup: &Setup,
-    model: &Model,
-    params: &[f64],
-    opts: &IdentifyOptions,
-    sigma: &[f64],
-    estimated: &[bool],
-    data: &TestData,
-    prev: &KalmanTuning,
-) -> Option<KalmanTuning> {
-    use crate::estimate::tuning::maximise_log_parallel as maximise_log;
-    let ok = |x: f64| x.is_finite() && x > 0.0;
-    // A tuned model-error std (not the default) is searched by the full tuning only.
-    let tunes_model_error = opts.model_error_std.is_none() && opts.tune_model_error;
-    if tunes_model_error
-        || !ok(prev.force_walk_std)
-        || !ok(prev.noise_scale)
-        || !ok(prev.model_error_std)
-    {
-        return None;
-    }
-    let with_terms = model.with_connection_terms(setup, params);
-    let model_error = prev.model_error_std;
-    let scaled = |s: f64| -> Vec<f64> {
-        sigma
-            .iter()
-            .zip(estimated)
-            .map(|(x, e)| if *e { x * s } else { *x })
-            .collect()
-    };
-    let likelihood = |s: f64, w: f64| {
-        kalman_log_likelihood(
-            setup,
-            &with_terms,
-            params,
-            opts,
-            &scaled(s),
-            data,
-            w,
-            model_error,
-        )
-    };
-    // Half-decade grid points over `[x/10^below, x·10^above]`; an optimum inside by more than
-    // half a grid step is trusted.
-    let grid = |below: f64, above: f64| (2.0 * (below + above)) as usize + 1;
-    let inside = |x: f64, centre: f64, below: f64, above: f64| {
-        let d = (x / centre).log10();
-        d > -below + 0.25 && d < above - 0.25
-    };
-    let noise_scale = prev.noise_scale;
-    let [down, up] = WARM_WALK_DECADES;
-    let (walk, mut ll, mut runs) = maximise_log(
-        prev.force_walk_std / 10f64.powf(down),
-        prev.force_walk_std * 10f64.powf(up),
-        grid(down, up),
-        WARM_GOLDEN,
-        &|w| likelihood(noise_scale, w),
-    );
-    if !ll.is_finite() || !inside(walk, prev.force_walk_std, down, up) {
-        return None;
-    }
-    let mut noise_scale = noise_scale;
-    if opts.tune_noise_scale && estimated.iter().any(|&e| e) {
-        let d = WARM_NOISE_DECADES;
-        let (s, l, n) = maximise_log(
-            prev.noise_scale / 10f64.powf(d),
-            prev.noise_scale * 10f64.powf(d),
-            grid(d, d),
-            WARM_GOLDEN,
-            &|s| likelihood(s, walk),
-        );
-        runs += n;
-        if !inside(s, prev.noise_scale, d, d) {
-            return None;
-        }
-        if l > ll {
-            noise_scale = s;
-            ll = l;
-        }
-    }
-    Some(KalmanTuning {
-        model_error_std: model_error,
-        force_walk_std: walk,
-        noise_scale,
-        sigma: scaled(noise_scale),
-        log_likelihood: ll,
-        runs,
-    })
-}
-
-/// The full search of [`tune_kalman`] (no previous tuning).
-fn tune_kalman_full(
     setup: &Setup,
     model: &Model,
     params: &[f64],
@@ -1296,8 +1162,6 @@ fn identify_once(
     }
     let q = setup.connections.len();
     let mut frozen: Option<KalmanTuning> = None;
-    // The last pass's tuning: the next re-tuning starts from it (see [`tune_kalman`]).
-    let mut last_tuning: Option<KalmanTuning> = None;
     let mut plain_streak = 0usize;
     let mut prev_residual: Option<Vec<f64>> = None;
     let mut tunings = 0;
@@ -1314,7 +1178,6 @@ fn identify_once(
             pass,
             truth,
             frozen.as_ref(),
-            last_tuning.as_ref(),
             &mut |o| on_sample(pass, o),
         );
         crate::par::phase("pass (with any tuning)", t0);
@@ -1327,7 +1190,6 @@ fn identify_once(
                     }
                 }
                 if frozen.is_none() && tuned.is_some() {
-                    last_tuning.clone_from(&tuned);
                     tunings += 1;
                     let settled = result
                         .passes
@@ -2096,7 +1958,6 @@ fn run_pass(
     pass: usize,
     truth: Option<&[f64]>,
     frozen: Option<&KalmanTuning>,
-    previous: Option<&KalmanTuning>,
     on_sample: &mut dyn FnMut(&StepOutput),
 ) -> Result<PassOutcome, IdentifyError> {
     // The model's Newmark sub-steps per sample: reported because continuous-time data are
@@ -2115,7 +1976,7 @@ fn run_pass(
             }
             None => {
                 let t0 = std::time::Instant::now();
-                let t = tune_kalman(setup, model, params, opts, sigma, estimated, data, previous)?;
+                let t = tune_kalman(setup, model, params, opts, sigma, estimated, data)?;
                 crate::par::phase("kalman tuning", t0);
                 t
             }
