@@ -1371,8 +1371,9 @@ const OBSERVER_BIAS_SCALE: f64 = 10.0;
 /// noise (50,000 samples, ACCURACY.md "The observer-force bias, corrected") brought the
 /// joint damper `v` from +3.0…+39.7 standard errors off to +0.10…+0.61 on four records
 /// (19–280× the scale), but left +3.3 on the fifth (480×, started from a scan), where the
-/// first-order correction is not enough. Below 10× (every 1 and 10 % record) the answers
-/// were within 0.93 errors before the correction.
+/// first-order correction is not enough (+0.77 since 2026-11-28, its force tuned on the
+/// first 10,000 samples: 184×). Below 10× (every 1 and 10 % record) the answers were within
+/// 0.93 errors before the correction.
 fn observer_force_warning(force_std: f64, force_scale: f64) -> Option<String> {
     let ratio = force_std / force_scale;
     (ratio > OBSERVER_BIAS_SCALE).then(|| {
