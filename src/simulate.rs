@@ -1996,6 +1996,36 @@ mod tests {
         (stepped, worst)
     }
 
+    /// A law whose every friction level is 0 (a level on its bound, the prediction error's
+    /// record of the noise alone) runs through the slip map too, as the folded linear map:
+    /// every sample stepped by it, the end states those of the sub-step force solve to 1e-9
+    /// (the paper's joint with `u`, `const`, `v` terms, 1, 8 and 64 sub-steps, 300 samples).
+    #[test]
+    fn slip_map_without_an_active_friction_is_the_linear_map() {
+        let toml = shipped_friction_toml();
+        let setup = Setup::from_toml(&toml, "two-beam-friction.toml").unwrap();
+        let model = Model::assemble(&setup).unwrap();
+        let params: Vec<f64> = setup
+            .param_basis()
+            .iter()
+            .map(|b| match b {
+                Basis::U => 3.0e5,
+                Basis::V => 30.0,
+                Basis::Const(_) => 2.0,
+                _ => 0.0,
+            })
+            .collect();
+        let exc = random_excitation(model.Lp.ncols(), 300, 1.5e3, 5);
+        for substeps in [1, 8, 64] {
+            let (stepped, worst) = slip_map_against_substeps(&setup, &params, substeps, &exc);
+            assert_eq!(stepped, 299, "{substeps} sub-steps");
+            assert!(
+                worst <= 1e-9,
+                "{substeps} sub-steps: relative difference {worst:e}"
+            );
+        }
+    }
+
     /// The slip map with two connections: the paper's friction joint and a second, linear
     /// one with a constant force and a friction term at level 0 (its constant enters the
     /// map's constant forces, its friction is not tested), 8 sub-steps, 300 samples: as
