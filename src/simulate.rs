@@ -1930,17 +1930,7 @@ mod tests {
             let text = toml.replace("\"sign(u)\"", &format!("\"{law}\""));
             let setup = Setup::from_toml(&text, "two-beam-friction.toml").unwrap();
             let model = Model::assemble(&setup).unwrap();
-            let params: Vec<f64> = setup
-                .param_basis()
-                .iter()
-                .map(|b| match b {
-                    Basis::SignU | Basis::SignV => level,
-                    Basis::U => 3.0e5,
-                    Basis::V => 30.0,
-                    Basis::Const(_) => 2.0,
-                    _ => 0.0,
-                })
-                .collect();
+            let params = paper_joint_params(&setup, level);
             let exc = random_excitation(model.Lp.ncols(), 300, 1.5e3, 5);
             for substeps in [1, 8, 64] {
                 let (stepped, worst) = slip_map_against_substeps(&setup, &params, substeps, &exc);
@@ -1954,6 +1944,22 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// The paper's joint law with friction `level` (either `sign` term), a spring, a damper
+    /// and a constant force, in the setup's parameter order.
+    fn paper_joint_params(setup: &Setup, level: f64) -> Vec<f64> {
+        setup
+            .param_basis()
+            .iter()
+            .map(|b| match b {
+                Basis::SignU | Basis::SignV => level,
+                Basis::U => 3.0e5,
+                Basis::V => 30.0,
+                Basis::Const(_) => 2.0,
+                _ => 0.0,
+            })
+            .collect()
     }
 
     /// Every sample of `exc` from the sub-step path's state, by the slip map where it steps
@@ -2005,16 +2011,7 @@ mod tests {
         let toml = shipped_friction_toml();
         let setup = Setup::from_toml(&toml, "two-beam-friction.toml").unwrap();
         let model = Model::assemble(&setup).unwrap();
-        let params: Vec<f64> = setup
-            .param_basis()
-            .iter()
-            .map(|b| match b {
-                Basis::U => 3.0e5,
-                Basis::V => 30.0,
-                Basis::Const(_) => 2.0,
-                _ => 0.0,
-            })
-            .collect();
+        let params = paper_joint_params(&setup, 0.0);
         let exc = random_excitation(model.Lp.ncols(), 300, 1.5e3, 5);
         for substeps in [1, 8, 64] {
             let (stepped, worst) = slip_map_against_substeps(&setup, &params, substeps, &exc);
