@@ -1165,6 +1165,10 @@ fn identify_once(
     let mut plain_streak = 0usize;
     let mut prev_residual: Option<Vec<f64>> = None;
     let mut tunings = 0;
+    // The track and the start state that go with the pass before the last (restored when
+    // the last is discarded, see [`discard_pass_that_diverged`]).
+    let mut track_before: Option<Track> = None;
+    let mut initial_before = opts.initial_state.clone();
     for pass in 1..=opts.passes {
         let t0 = std::time::Instant::now();
         let outcome = run_pass(
@@ -1183,7 +1187,8 @@ fn identify_once(
         crate::par::phase("pass (with any tuning)", t0);
         let report = match outcome {
             Ok((r, track, tuned, initial_fit)) => {
-                result.track = Some(track);
+                track_before = result.track.replace(track);
+                initial_before = opts.initial_state.clone();
                 if let (Some(correction), Some(x)) = (initial_fit, opts.initial_state.as_mut()) {
                     for (a, d) in x.iter_mut().zip(&correction) {
                         *a += d;
@@ -1208,6 +1213,11 @@ fn identify_once(
                 r
             }
             Err(e) => {
+                if let Some(note) = discard_pass_that_diverged(&mut result, &params, &e, pass) {
+                    result.track = track_before.take();
+                    opts.initial_state = initial_before.clone();
+                    result.notes.push(note);
+                }
                 // No partial result from an undetermined deformation after a provisional
                 // first pass that was undetermined too: that is the refusal it deferred.
                 let deferred = matches!(e, IdentifyError::Undetermined { .. })
@@ -1346,6 +1356,53 @@ fn identify_once(
         };
     }
     Ok(result)
+}
+
+/// A pass that diverged (its model or its error recursion blew up) while it ran with the
+/// last pass's own answer: that answer is what made the model diverge, so it is not an
+/// answer — it is taken off the passes (and returned as a note), and the identification
+/// goes on from the pass before it (its parameters, track and start state). Why: measured
+/// with a tuning that was not kept (ACCURACY.md, "Tried and not kept: warm Kalman
+/// re-tunings"), pass 4 of a noise-free Coulomb record ended at `sign(v)` −1.7e20 and `u`
+/// −1.4e7 ± 4.6e4, pass 5 diverged with them, and pass 4's values were printed as the answer
+/// beside the failure. A pass that ran with extrapolated parameters (the Aitken step) keeps
+/// the last pass: its own answer never ran. Other failures (an undetermined deformation, a
+/// singular fit) say nothing against the parameters they ran with.
+fn discard_pass_that_diverged(
+    result: &mut Identification,
+    ran_with: &[f64],
+    e: &IdentifyError,
+    pass: usize,
+) -> Option<String> {
+    let diverged = matches!(
+        e,
+        IdentifyError::Estimate(EstimateError::Diverged { .. } | EstimateError::Overflowed { .. })
+    );
+    let last = result.passes.last()?;
+    let its_own = last.parameters.len() == ran_with.len()
+        && last
+            .parameters
+            .iter()
+            .zip(ran_with)
+            .all(|(a, b)| a.value == *b);
+    if !(diverged && its_own) {
+        return None;
+    }
+    let dropped = result.passes.pop()?;
+    let values: Vec<String> = dropped
+        .parameters
+        .iter()
+        .map(|p| format!("{} {} {:.4e}", p.connection, p.basis, p.value))
+        .collect();
+    Some(format!(
+        "pass {} discarded: pass {pass}, run with its parameters ({}), diverged ({e}); {}",
+        dropped.pass,
+        values.join(", "),
+        match result.passes.last() {
+            Some(p) => format!("the answer goes on from pass {}", p.pass),
+            None => "no pass before it".into(),
+        }
+    ))
 }
 
 /// What replaces an unusable prediction-error refinement: the free-run output error, or
@@ -2430,6 +2487,86 @@ mod tests {
             response: vec![first],
         };
         (data, vec![1.0; setup.sensors.len()])
+    }
+
+    fn pass_with(pass: usize, values: &[f64]) -> PassReport {
+        PassReport {
+            pass,
+            parameters: values
+                .iter()
+                .map(|&value| ParameterEstimate {
+                    connection: "joint".into(),
+                    basis: "u".into(),
+                    unit: "N/m".into(),
+                    value,
+                    std_error: 1.0,
+                    ci95: [value - 1.96, value + 1.96],
+                    crlb: None,
+                    std_error_ols: None,
+                    truth: None,
+                })
+                .collect(),
+            fit_condition: vec![],
+            fit_rms_residual: vec![],
+            rows_used: vec![],
+            rows_excluded_stuck: vec![],
+            diagnostics: EstimatorDiagnostics::default(),
+            max_change_std_errors: None,
+            max_change_force_relative: None,
+            force_scales: vec![],
+        }
+    }
+
+    fn two_passes() -> Identification {
+        Identification {
+            estimator: "kalman".into(),
+            passes: vec![pass_with(1, &[3.0e5]), pass_with(2, &[-1.4e7])],
+            converged: false,
+            stop_reason: String::new(),
+            failure: None,
+            track: None,
+            output_error: None,
+            maximum_likelihood: None,
+            notes: vec![],
+            session: None,
+            initial_state: None,
+            motion_in_record: None,
+        }
+    }
+
+    #[test]
+    fn a_pass_whose_answer_made_the_next_diverge_is_taken_off_the_passes() {
+        let diverged = IdentifyError::Estimate(EstimateError::Diverged { sample: 17 });
+        let mut result = two_passes();
+        let note = discard_pass_that_diverged(&mut result, &[-1.4e7], &diverged, 3)
+            .expect("pass 2's own answer diverged in pass 3");
+        assert_eq!(result.passes.len(), 1);
+        assert_eq!(result.final_parameters().map(|p| p[0].value), Some(3.0e5));
+        assert!(note.contains("pass 2 discarded"), "{note}");
+        assert!(note.contains("-1.4000e7"), "{note}");
+        assert!(note.contains("from pass 1"), "{note}");
+        // Extrapolated parameters diverged: pass 2's own answer never ran, it stays.
+        let mut result = two_passes();
+        assert!(discard_pass_that_diverged(&mut result, &[-2.0e7], &diverged, 3).is_none());
+        assert_eq!(result.passes.len(), 2);
+        // A failure that is not a divergence says nothing against the parameters.
+        let undetermined = IdentifyError::Undetermined {
+            pass: 3,
+            connection: "joint".into(),
+            posterior_std: 1.0,
+            rms: 1.0,
+        };
+        let mut result = two_passes();
+        assert!(discard_pass_that_diverged(&mut result, &[-1.4e7], &undetermined, 3).is_none());
+        assert_eq!(result.passes.len(), 2);
+        // An overflow is a divergence too.
+        let overflowed = IdentifyError::Estimate(EstimateError::Overflowed {
+            sample: 3,
+            magnitude: 1e200,
+        });
+        let mut result = two_passes();
+        assert!(discard_pass_that_diverged(&mut result, &[-1.4e7], &overflowed, 3).is_some());
+        assert_eq!(result.passes.len(), 1);
     }
 
     #[test]
