@@ -101,7 +101,8 @@ fn run(c: Cli) -> Result<()> {
         ScenarioArg::Random => Scenario::Random { rms: c.amplitude },
         ScenarioArg::Free => Scenario::Free {
             amplitude: c.amplitude,
-            pulse_s: 5e-4,
+            // 50 samples at 10 kHz: resolved by the samples (see `jointid simulate --pulse`).
+            pulse_s: 5e-3,
         },
     };
     let o = AcquireOptions {

@@ -104,8 +104,10 @@ enum Command {
         /// Sine frequency, Hz.
         #[arg(long, default_value_t = 200.0)]
         freq: f64,
-        /// Impact pulse duration for `free`, s.
-        #[arg(long, default_value_t = 5.0e-4)]
+        /// Impact pulse duration for `free`, s (a half-sine; the model interpolates the
+        /// excitation linearly between samples, which misses π²/(12n²) of the impulse of an
+        /// n-sample pulse: 0.03 % at 50 samples, 0.2 % at 20 — visible at 1 % noise).
+        #[arg(long, default_value_t = 5.0e-3)]
         pulse: f64,
         #[arg(long, value_enum, default_value = "json")]
         encoding: EncodingArg,
