@@ -419,6 +419,19 @@ const POLISH_SECANT: f64 = 2.0;
 /// larger of the two). Same sweeps as [`POLISH_SECANT`].
 const ERROR_SECANTS: [f64; 2] = [1.0, 8.0];
 
+/// Samples of the first descent round on a record longer than twice this: the
+/// Levenberg–Marquardt descent from the start values runs on the record's first samples,
+/// and the second round (the observer rebuilt at that point) descends on the whole record
+/// from there. Why: from the Kalman passes' values the descent needs several steps, each a
+/// whole-record Jacobian (9 runs of the predictor) and its trials; on the prefix they cost
+/// a fraction, and the whole record then starts within about `√(N/10,000)` of its errors
+/// from its minimum, which a step or two reaches. The answer is still the whole record's
+/// minimum with the observer built at a point near it, as before (the second round rebuilt
+/// it at the first round's end point on the whole record). Measured (100,000 samples,
+/// BENCHMARKS.md): the refinement's 4 + 2 whole-record Jacobians and 12 trials became
+/// TODO.
+pub const DESCENT_PREFIX_SAMPLES: usize = 10_000;
+
 /// What the prediction-error refinement did (reported in the identification's
 /// output-error report).
 #[derive(Debug, Clone, serde::Serialize)]
@@ -430,7 +443,9 @@ pub struct PredictionErrorReport {
     /// Model sub-steps of the final refinement.
     pub substeps: usize,
     pub iterations: usize,
-    /// Normalised innovation cost `Σ|S^{-1/2}e|²/(N m)` at the start values and at the end.
+    /// Normalised innovation cost `Σ|S^{-1/2}e|²/(N m)` at the start values (over the
+    /// first descent round's samples: a long record's prefix, [`DESCENT_PREFIX_SAMPLES`])
+    /// and at the end (the whole record).
     pub cost_start: f64,
     pub cost_end: f64,
     /// Newey–West lag window of the sandwich standard errors, samples.
@@ -755,7 +770,16 @@ pub fn refine(
     let mut iterations = 0;
     let mut cost_start = None;
     let mut last: Option<(Jac, Predictor)> = None;
+    // A long record's first round descends on its first [`DESCENT_PREFIX_SAMPLES`] (see
+    // there); the second, on the whole record, always runs then.
+    let prefix_round = excitation.len() > 2 * DESCENT_PREFIX_SAMPLES;
     for round in 0..2 {
+        let len = if round == 0 && prefix_round {
+            DESCENT_PREFIX_SAMPLES
+        } else {
+            excitation.len()
+        };
+        let (excitation, response) = (&excitation[..len], &response[..len]);
         let mut pred = predictor(setup, model, &p, sigma, substeps, force_std)?;
         pred.initial = initial.map(<[f64]>::to_vec);
         // A record in motion: refit the start state with this observer (twice: the
@@ -774,7 +798,7 @@ pub fn refine(
             setup, model, &basis, &p, &scales, &pred, excitation, response, substeps, None,
         )?;
         if cost_start.is_none() {
-            cost_start = Some(J.cost / nobs);
+            cost_start = Some(J.cost / (len * m) as f64);
         }
         let mut mu = 1e-3;
         let mut moved = false;
@@ -867,7 +891,7 @@ pub fn refine(
             )?;
         }
         last = Some((J, pred));
-        if round == 0 && !moved {
+        if round == 0 && !moved && !prefix_round {
             break;
         }
     }

@@ -23,12 +23,16 @@ use super::{IdentifyOptions, TestData};
 /// gives +3.4 % (se 4.3 %), flagged rough.
 pub(super) const PEM_MAX_COST: f64 = 2.0;
 
-/// Most simulated sub-steps per prediction-error run when its sub-steps are raised (one
-/// run of 2,000 samples × 64 sub-steps takes about 0.17 s; a refinement about 40 runs).
-const MAX_PEM_STEPS: usize = 1_500_000;
-
 /// Most model sub-steps per sample the prediction-error refinement tries (the finest data
-/// scheme the sweeps use is 64 sub-steps).
+/// scheme the sweeps use is 64 sub-steps), whatever the record's length. Until 2026-11-28 a
+/// budget of 1.5 million simulated sub-steps per run also capped the level by the record's
+/// length (16 at 50,000 samples, 8 at 100,000), made when a run cost every sub-step (2,000
+/// samples × 64 in 0.17 s); the sample maps (`simulate::SlipSampleMap`) made the cost
+/// nearly independent of the level, and the cap made long records of finely integrated data
+/// fail: 50,000 samples of 64-sub-step friction data at 1 % noise were refined at 16
+/// sub-steps, misfit the data (normalised cost 9.5 and 18.5), were called "in motion" and
+/// refused after 16–25 s; at 64 sub-steps the same record is identified in 10.6 s, every
+/// parameter within 0.6 errors (ACCURACY.md, fifteenth session).
 const MAX_PEM_LEVEL: usize = 64;
 
 /// Samples on which the model sub-steps are chosen (a prefix of longer records). The level
@@ -337,7 +341,7 @@ fn start_motion(
 /// Prediction-error refinement for laws with a `sign(u)` term (see
 /// `estimate::prediction_error`), from the residual-force estimate. The model sub-steps are
 /// chosen first, at the start values: the tuned innovation likelihood at every level from
-/// the setup's, doubling, up to [`MAX_PEM_LEVEL`] and [`MAX_PEM_STEPS`] per run; the coarsest
+/// the setup's, doubling, up to [`MAX_PEM_LEVEL`]; the coarsest
 /// level within 3 standard deviations (`1.5√(2Nm)`) of the likeliest is kept; then one
 /// refinement at that level. Returns the result and the sub-steps used.
 ///
@@ -372,15 +376,15 @@ pub(super) fn refine_by_prediction_error(
     let nobs = (choice.len() * sigma.len()) as f64;
     // A log-likelihood gain of more than 3 standard deviations of ½χ² (`1.5√(2Nm)`).
     let significant = 1.5 * (2.0 * nobs).sqrt();
-    // Every level from the setup's up to 64 sub-steps (within the step budget) is tried and
-    // the likeliest kept — the coarsest within `significant` of it. The likelihood is not
+    // Every level from the setup's up to 64 sub-steps is tried and the likeliest kept — the
+    // coarsest within `significant` of it. The likelihood is not
     // monotone in the sub-steps (a Newmark model resonates with the data's own scheme), so
     // stopping at the first doubling that does not help (as before) could stop short:
     // measured on the shipped case with 8-sub-step data, seed 6, it stayed at 1 sub-step
     // and the refinement fell back to the free-run output error (−6.4 %, 621 se).
     let mut levels = vec![opts.substeps];
     while let Some(&last) = levels.last() {
-        if last * 2 > MAX_PEM_LEVEL.max(opts.substeps) || data.len() * last * 2 > MAX_PEM_STEPS {
+        if last * 2 > MAX_PEM_LEVEL.max(opts.substeps) {
             break;
         }
         levels.push(last * 2);
