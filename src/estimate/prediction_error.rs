@@ -428,9 +428,23 @@ const ERROR_SECANTS: [f64; 2] = [1.0, 8.0];
 /// from its minimum, which a step or two reaches. The answer is still the whole record's
 /// minimum with the observer built at a point near it, as before (the second round rebuilt
 /// it at the first round's end point on the whole record). Measured (100,000 samples,
-/// BENCHMARKS.md): the refinement's 4 + 2 whole-record Jacobians and 12 trials became
-/// TODO.
+/// BENCHMARKS.md): the refinement's 52 whole-record predictor runs became 32 and 45 runs
+/// on the prefix (about 5 whole-record runs' worth), 4.5 → 3.0 s. The whole round moved
+/// 2.6 of its naive errors from the prefix's end point there; see [`PREFIX_REBUILD`] for
+/// when it moves far more.
 pub const DESCENT_PREFIX_SAMPLES: usize = 10_000;
+
+/// After the prefix's round, the whole round's observer was built at the prefix's end,
+/// whose own errors are `√(N/10,000)` times the whole record's: a whole round that moves
+/// more than this many times that from it shows the prefix did not represent the record,
+/// and a second whole round runs with the observer rebuilt at its end (as the second round
+/// without a prefix always does). Why: the answer depends on where the observer was built,
+/// slightly near the answer and much far from it. Measured: 100,000 samples (friction,
+/// 8-sub-step data, 1 %): moved 2.6 errors, a rebuilt round changed no parameter by 0.005
+/// errors and cost 0.9 s; 50,000 samples (spring, 8-sub-step data, 100 % noise, seed 1,
+/// the Kalman passes' start `u` 25× the truth): moved 1,154 errors, `v` −2.22 errors off
+/// without the rebuilt round, +0.29 with it (+0.22 before the prefix).
+const PREFIX_REBUILD: f64 = 4.0;
 
 /// What the prediction-error refinement did (reported in the identification's
 /// output-error report).
@@ -583,6 +597,19 @@ fn jacobian(
         t0,
     );
     Ok(Jac { r, cols, cost })
+}
+
+/// The largest move from `from` to `p` in naive standard errors of `j` (∞ when its normal
+/// matrix is singular).
+fn moved_beyond(j: &Jac, p: &[f64], from: &[f64]) -> f64 {
+    let Some(inv) = scaled_inverse(&normal(j).0) else {
+        return f64::INFINITY;
+    };
+    p.iter()
+        .zip(from)
+        .enumerate()
+        .map(|(a, (x, b))| (x - b).abs() / inv[(a, a)].max(0.0).sqrt())
+        .fold(0.0, f64::max)
 }
 
 fn normal(j: &Jac) -> (DMatrix<f64>, DVector<f64>) {
@@ -769,12 +796,16 @@ pub fn refine(
         |w: &[f64]| -> Vec<f64> { w.iter().zip(&floor).map(|(a, b)| a.max(*b)).collect() };
     let mut iterations = 0;
     let mut cost_start = None;
-    let mut last: Option<(Jac, Predictor)> = None;
-    // A long record's first round descends on its first [`DESCENT_PREFIX_SAMPLES`] (see
-    // there); the second, on the whole record, always runs then.
-    let prefix_round = excitation.len() > 2 * DESCENT_PREFIX_SAMPLES;
-    for round in 0..2 {
-        let len = if round == 0 && prefix_round {
+    // Rounds on the whole record: the second (the observer rebuilt at the first's end) runs
+    // when the first moved. A long record's first round descends on its first
+    // [`DESCENT_PREFIX_SAMPLES`] instead, and one whole round follows — a second only when
+    // the first moved far beyond what the prefix's own errors explain (see there).
+    let mut on_prefix = excitation.len() > 2 * DESCENT_PREFIX_SAMPLES;
+    let mut whole_rounds_left = if on_prefix { 1 } else { 2 };
+    let mut after_prefix = false;
+    let (mut J, pred) = loop {
+        let built_at = p.clone();
+        let len = if on_prefix {
             DESCENT_PREFIX_SAMPLES
         } else {
             excitation.len()
@@ -890,13 +921,21 @@ pub fn refine(
                 Some(run),
             )?;
         }
-        last = Some((J, pred));
-        if round == 0 && !moved && !prefix_round {
-            break;
+        if on_prefix {
+            on_prefix = false;
+            after_prefix = true;
+            continue;
         }
-    }
-    let Some((mut J, pred)) = last else {
-        return Err(SimulateError::Singular);
+        whole_rounds_left -= 1;
+        if std::mem::take(&mut after_prefix)
+            && moved_beyond(&J, &p, &built_at)
+                > PREFIX_REBUILD * (excitation.len() as f64 / DESCENT_PREFIX_SAMPLES as f64).sqrt()
+        {
+            whole_rounds_left = 1;
+        }
+        if whole_rounds_left == 0 || !moved {
+            break (J, pred);
+        }
     };
     // Secant Gauss–Newton to the zero of the smoothed gradient (see `POLISH_ITER`).
     let mut polished = 0;
