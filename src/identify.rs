@@ -405,6 +405,24 @@ pub struct MotionInRecord {
 }
 
 impl Identification {
+    /// No pass yet, nothing refined, no notes: what an estimator's run starts from.
+    pub fn started(estimator: impl Into<String>) -> Self {
+        Self {
+            estimator: estimator.into(),
+            passes: Vec::new(),
+            converged: false,
+            stop_reason: String::new(),
+            failure: None,
+            track: None,
+            output_error: None,
+            maximum_likelihood: None,
+            notes: Vec::new(),
+            session: None,
+            initial_state: None,
+            motion_in_record: None,
+        }
+    }
+
     /// Reasons the identified model does not explain the data (non-white residuals, fitted
     /// noise above the stated `noise_std`, output-error cost far above the noise): what
     /// `--strict` refuses on.
@@ -1131,20 +1149,7 @@ fn identify_once(
         ));
         opts.initial_state = Some(x0);
     }
-    let mut result = Identification {
-        estimator: opts.estimator.to_string(),
-        passes: Vec::new(),
-        converged: false,
-        stop_reason: String::new(),
-        failure: None,
-        track: None,
-        output_error: None,
-        maximum_likelihood: None,
-        notes: Vec::new(),
-        session: None,
-        initial_state: None,
-        motion_in_record: None,
-    };
+    let mut result = Identification::started(opts.estimator.to_string());
     result.notes.extend(fallback_note);
     result.notes.extend(motion_note);
     if setup.estimator.reduce_modes.is_some() {
@@ -2430,18 +2435,12 @@ fn identify_by_maximum_likelihood(
         }
     );
     Ok(Identification {
-        estimator: "ml".into(),
         passes: vec![report],
         converged: true,
         stop_reason,
-        failure: None,
-        track: None,
-        output_error: None,
         maximum_likelihood: Some(fit),
         notes,
-        session: None,
-        initial_state: None,
-        motion_in_record: None,
+        ..Identification::started("ml")
     })
 }
 
@@ -2519,18 +2518,8 @@ mod tests {
 
     fn two_passes() -> Identification {
         Identification {
-            estimator: "kalman".into(),
             passes: vec![pass_with(1, &[3.0e5]), pass_with(2, &[-1.4e7])],
-            converged: false,
-            stop_reason: String::new(),
-            failure: None,
-            track: None,
-            output_error: None,
-            maximum_likelihood: None,
-            notes: vec![],
-            session: None,
-            initial_state: None,
-            motion_in_record: None,
+            ..Identification::started("kalman")
         }
     }
 
