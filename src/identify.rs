@@ -1218,10 +1218,11 @@ fn identify_once(
                 r
             }
             Err(e) => {
-                if let Some(note) = discard_pass_that_diverged(&mut result, &params, &e, pass) {
+                let discarded = discard_pass_that_diverged(&mut result, &params, &e, pass);
+                if let Some(note) = &discarded {
                     result.track = track_before.take();
                     opts.initial_state = initial_before.clone();
-                    result.notes.push(note);
+                    result.notes.push(note.clone());
                 }
                 // No partial result from an undetermined deformation after a provisional
                 // first pass that was undetermined too: that is the refusal it deferred.
@@ -1251,6 +1252,12 @@ fn identify_once(
                         );
                     }
                     return Err(e);
+                }
+                // A failure caused by a pass that blew up is that pass's: the passes stop at
+                // the sound one before it, not converged, and the refinement goes on from it.
+                if let (Some(note), Some(sound)) = (&discarded, result.passes.last()) {
+                    result.stop_reason = format!("stopped after pass {}: {note}", sound.pass);
+                    break;
                 }
                 result.failure = Some(e.to_string());
                 result.stop_reason = format!("pass {pass} failed: {e}");
@@ -1347,7 +1354,7 @@ fn identify_once(
     if result.failure.is_some() {
         return Ok(result);
     }
-    if !result.converged {
+    if !result.converged && result.stop_reason.is_empty() {
         let change = result.passes.last().and_then(|p| p.max_change_std_errors);
         result.stop_reason = match change {
             Some(c) => format!(
@@ -1363,16 +1370,19 @@ fn identify_once(
     Ok(result)
 }
 
-/// A pass that diverged (its model or its error recursion blew up) while it ran with the
-/// last pass's own answer: that answer is what made the model diverge, so it is not an
-/// answer — it is taken off the passes (and returned as a note), and the identification
-/// goes on from the pass before it (its parameters, track and start state). Why: measured
-/// with a tuning that was not kept (ACCURACY.md, "Tried and not kept: warm Kalman
-/// re-tunings"), pass 4 of a noise-free Coulomb record ended at `sign(v)` −1.7e20 and `u`
-/// −1.4e7 ± 4.6e4, pass 5 diverged with them, and pass 4's values were printed as the answer
-/// beside the failure. A pass that ran with extrapolated parameters (the Aitken step) keeps
-/// the last pass: its own answer never ran. Other failures (an undetermined deformation, a
-/// singular fit) say nothing against the parameters they ran with.
+/// A pass whose model broke while it ran with the last pass's own answer — it diverged,
+/// its integrator could not step, or its stations no longer saw the residual force
+/// (rank(S) = 0; the same stations did in pass 1) — fails because of that answer, so that
+/// answer is not one: it is taken off the passes (and returned as a note), and the
+/// identification goes on from the pass before it (its parameters, track and start state).
+/// Why: on noise-free Coulomb data of the model's own discretisation (test
+/// `noise_free_own_discretisation_is_recovered_exactly`) pass 4 blew up to `sign(v)` 3e99
+/// and `u` −1.4e7 ± 6.6e4 N/m, pass 5 found rank(S) = 0 with them, and pass 4's values
+/// were the answer beside the failure — seen with two tunings (the warm re-tuning of the
+/// fourteenth session, Brent's refinement of the fifteenth). A pass that ran with
+/// extrapolated parameters (the Aitken step) keeps the last pass: its own answer never
+/// ran. Other failures (an undetermined deformation, a singular fit) say nothing against
+/// the parameters they ran with.
 fn discard_pass_that_diverged(
     result: &mut Identification,
     ran_with: &[f64],
@@ -1381,7 +1391,12 @@ fn discard_pass_that_diverged(
 ) -> Option<String> {
     let diverged = matches!(
         e,
-        IdentifyError::Estimate(EstimateError::Diverged { .. } | EstimateError::Overflowed { .. })
+        IdentifyError::Estimate(
+            EstimateError::Diverged { .. }
+                | EstimateError::Overflowed { .. }
+                | EstimateError::RankDeficientSensitivity { .. }
+                | EstimateError::Integrate(_)
+        )
     );
     let last = result.passes.last()?;
     let its_own = last.parameters.len() == ran_with.len()
@@ -1400,7 +1415,7 @@ fn discard_pass_that_diverged(
         .map(|p| format!("{} {} {:.4e}", p.connection, p.basis, p.value))
         .collect();
     Some(format!(
-        "pass {} discarded: pass {pass}, run with its parameters ({}), diverged ({e}); {}",
+        "pass {} discarded: pass {pass}, run with its parameters ({}), failed ({e}); {}",
         dropped.pass,
         values.join(", "),
         match result.passes.last() {
@@ -2548,6 +2563,16 @@ mod tests {
         let mut result = two_passes();
         assert!(discard_pass_that_diverged(&mut result, &[-1.4e7], &undetermined, 3).is_none());
         assert_eq!(result.passes.len(), 2);
+        // Stations that no longer see the residual force with those parameters: the same.
+        let blind = IdentifyError::Estimate(EstimateError::RankDeficientSensitivity {
+            rank: 0,
+            needed: 1,
+            stations: 12,
+            condition: f64::INFINITY,
+        });
+        let mut result = two_passes();
+        assert!(discard_pass_that_diverged(&mut result, &[-1.4e7], &blind, 3).is_some());
+        assert_eq!(result.passes.len(), 1);
         // An overflow is a divergence too.
         let overflowed = IdentifyError::Estimate(EstimateError::Overflowed {
             sample: 3,
