@@ -11,8 +11,8 @@
 //!   still give finite weights. The estimate is an upper bound on σ for densely sampled
 //!   data; the likelihood tuning below can scale it down.
 //! - **Random-walk std σ_R** (and a scale factor of the noise levels): maximise the
-//!   innovation log-likelihood of a filter-only run over a log grid, then refine by Brent's
-//!   method in log space. See [`maximise_log`].
+//!   innovation log-likelihood of a filter-only run over a log grid, then refine by golden
+//!   section in log space. See [`maximise_log`].
 
 /// `C(2k, k)`.
 fn central_binomial(k: usize) -> f64 {
@@ -84,9 +84,8 @@ pub fn channel_noise_std(y: &[f64]) -> f64 {
 }
 
 /// Maximise `f(x)` over `x ∈ [lo, hi]` (both > 0) in log space: a grid of `grid` points,
-/// then Brent's refinement around the best grid point, at most `refine` evaluations (fewer
-/// when it reaches [`BRENT_TOL`]). Non-finite values count as −∞. Returns
-/// `(x, f(x), evaluations)`.
+/// then golden-section refinement around the best grid point for `refine` evaluations.
+/// Non-finite values count as −∞. Returns `(x, f(x), evaluations)`.
 pub fn maximise_log(
     lo: f64,
     hi: f64,
@@ -99,8 +98,8 @@ pub fn maximise_log(
     })
 }
 
-/// [`maximise_log`] with the grid points evaluated on parallel threads
-/// ([`crate::par::map`]): the same points, compared in the same order, so the same
+/// [`maximise_log`] with the grid points and the first golden pair evaluated on parallel
+/// threads ([`crate::par::map`]): the same points, compared in the same order, so the same
 /// answer. Why: the Kalman filter's likelihood tuning evaluates its grids one filter run
 /// after another while the second core idles (a quarter of the shipped replay's time).
 pub fn maximise_log_parallel(
@@ -139,91 +138,37 @@ fn maximise_log_batched(
         }
     }
     let mut count = grid;
-    // Brent's method on [best − step, best + step]: parabolic steps through the three best
-    // points, each safeguarded by a golden-section step when it would leave the bracket or
-    // not shrink it (Brent, *Algorithms for Minimization without Derivatives*, 1973, ch. 5;
-    // Numerical Recipes §10.3), until the bracket is narrower than 4 × `BRENT_TOL` or
-    // `refine` evaluations were made. Why not golden section alone (as before): its bracket
-    // shrinks by 0.618 per evaluation whatever the function, and the likelihoods tuned here
-    // are smooth near their peak, where parabolic steps converge superlinearly — the same
-    // precision in about half the filter runs (BENCHMARKS.md, fifteenth session).
-    let cgold = 0.5 * (3.0 - 5f64.sqrt());
-    let tol = BRENT_TOL * std::f64::consts::LN_10;
-    let (mut lo, mut hi) = (best.0 - step, best.0 + step);
-    // Minimise −f: x the best point, w the second best, v the previous w.
-    let (mut x, mut w, mut v) = (best.0, best.0, best.0);
-    let (mut fx, mut fw, mut fv) = (-best.1, -best.1, -best.1);
-    let (mut d, mut e): (f64, f64) = (0.0, 0.0);
-    for _ in 0..refine {
-        let xm = 0.5 * (lo + hi);
-        if (x - xm).abs() <= 2.0 * tol - 0.5 * (hi - lo) {
-            break;
-        }
-        let mut golden = true;
-        if e.abs() > tol && fx.is_finite() && fw.is_finite() && fv.is_finite() {
-            let r = (x - w) * (fx - fv);
-            let q0 = (x - v) * (fx - fw);
-            let mut p = (x - v) * q0 - (x - w) * r;
-            let mut q = 2.0 * (q0 - r);
-            if q > 0.0 {
-                p = -p;
-            }
-            q = q.abs();
-            let e_before = e;
-            e = d;
-            // Accept the parabola's vertex if it lies inside the bracket and moves less
-            // than half the step before last (else the parabola is not to be trusted).
-            if p.abs() < (0.5 * q * e_before).abs() && p > q * (lo - x) && p < q * (hi - x) {
-                d = p / q;
-                let u = x + d;
-                if u - lo < 2.0 * tol || hi - u < 2.0 * tol {
-                    d = tol.copysign(xm - x);
-                }
-                golden = false;
-            }
-        }
-        if golden {
-            e = if x >= xm { lo - x } else { hi - x };
-            d = cgold * e;
-        }
-        let u = if d.abs() >= tol {
-            x + d
+    // Golden section on [best − step, best + step].
+    let g = 0.5 * (5f64.sqrt() - 1.0);
+    let (mut l, mut r) = (best.0 - step, best.0 + step);
+    let mut x1 = r - g * (r - l);
+    let mut x2 = l + g * (r - l);
+    let pair = eval_logs(&[x1, x2]);
+    let (mut f1, mut f2) = (pair[0], pair[1]);
+    count += 2;
+    for _ in 0..refine.saturating_sub(2) {
+        if f1 >= f2 {
+            r = x2;
+            x2 = x1;
+            f2 = f1;
+            x1 = r - g * (r - l);
+            f1 = eval_logs(&[x1])[0];
         } else {
-            x + tol.copysign(d)
-        };
-        let fu = -eval_logs(&[u])[0];
+            l = x1;
+            x1 = x2;
+            f1 = f2;
+            x2 = l + g * (r - l);
+            f2 = eval_logs(&[x2])[0];
+        }
         count += 1;
-        if fu <= fx {
-            if u >= x {
-                lo = x;
-            } else {
-                hi = x;
-            }
-            (v, fv) = (w, fw);
-            (w, fw) = (x, fx);
-            (x, fx) = (u, fu);
-        } else {
-            if u < x {
-                lo = u;
-            } else {
-                hi = u;
-            }
-            if fu <= fw || w == x {
-                (v, fv) = (w, fw);
-                (w, fw) = (u, fu);
-            } else if fu <= fv || v == x || v == w {
-                (v, fv) = (u, fu);
-            }
+    }
+    for (t, v) in [(x1, f1), (x2, f2)] {
+        if v > best.1 {
+            best = (t, v);
         }
     }
-    (x.exp(), -fx, count)
+    (best.0.exp(), best.1, count)
 }
-
-/// Precision of [`maximise_log`]'s refinement, in decades of `x`: it stops when the
-/// bracket is narrower than 4× this (0.02 decades, a 5 % band of `x`; the golden section
-/// that it replaced ended with brackets of 0.016–0.04 decades at the Kalman tuning's
-/// evaluation counts).
-const BRENT_TOL: f64 = 0.005;
 
 #[cfg(test)]
 mod tests {
@@ -277,30 +222,7 @@ mod tests {
             -(x.ln() - 3f64.ln()).powi(2)
         });
         assert!((x / 3.0 - 1.0).abs() < 1e-3, "{x}");
-        // A parabola in log x: Brent's refinement stops long before its budget.
-        assert!(count < 9 + 10, "{count} evaluations");
-    }
-
-    /// An asymmetric smooth peak (not a parabola in log x): Brent's refinement reaches its
-    /// tolerance in fewer evaluations than the 12 golden-section steps it replaced, and to
-    /// at least their precision (0.016 decades).
-    #[test]
-    fn brent_refinement_is_precise_in_fewer_evaluations() {
-        // −(e^{1.5t} − 1.5t), t = log10 x − 0.37: the maximum at x = 10^0.37, steep on one
-        // side and nearly linear on the other.
-        let truth = 0.37f64;
-        let f = |x: f64| {
-            let t = x.log10() - truth;
-            -((1.5 * t).exp() - 1.5 * t)
-        };
-        let (x, fx, count) = maximise_log(1e-4, 1e4, 9, 12, &mut |x| f(x));
-        assert!(
-            (x.log10() - truth).abs() < 0.008,
-            "{} vs {truth}",
-            x.log10()
-        );
-        assert!(fx >= f(10f64.powf(truth)) - 1e-4, "{fx}");
-        assert!(count <= 9 + 8, "{count} evaluations");
+        assert_eq!(count, 9 + 20);
     }
 
     /// The parallel version evaluates the same points and returns the same answer, to the

@@ -59,19 +59,18 @@ const FORCE_TUNE_SAMPLES: usize = 10_000;
 
 /// Range and grid of the observer's process-noise tuning, relative to the model's force
 /// scale (`kalman::force_scale_of`, 1.75e3 N on the two-beam model): 1e-2 … 1e3 of it,
-/// 11 grid points (half decades) then at most 6 steps of Brent's method in log space.
+/// 11 grid points (half decades) then 6 golden-section steps in log space.
 const PEM_TUNE_RANGE: [f64; 2] = [1e-2, 1e3];
 
 /// How [`tune_pem_force`] searches the observer force.
 #[derive(Debug, Clone, Copy)]
 enum ForceSearch {
-    /// Over [`PEM_TUNE_RANGE`]: decade grid, 2 refinement steps — enough to compare the
+    /// Over [`PEM_TUNE_RANGE`]: decade grid, 2 golden-section steps — enough to compare the
     /// likelihoods of the sub-step levels (they differ by far more than what a finer search
     /// gains), at 8 runs instead of 17 per level.
     Coarse,
-    /// ± [`NEAR_DECADES`] around a force already found, half-decade grid, at most 6
-    /// refinement steps (not positive or not finite: over the whole range, half-decade
-    /// grid).
+    /// ± [`NEAR_DECADES`] around a force already found, half-decade grid, 6 golden steps
+    /// (not positive or not finite: over the whole range, half-decade grid).
     Near(f64),
 }
 
@@ -166,7 +165,7 @@ fn tune_pem_force(
     let loglik = |fs: f64| -> f64 {
         pem_log_likelihood(setup, model, data, sigma, start, substeps, initial, fs)
     };
-    let (lo, hi, grid, refine) = match search {
+    let (lo, hi, grid, golden) = match search {
         ForceSearch::Near(f) if f.is_finite() && f > 0.0 => (
             f / 10f64.powf(NEAR_DECADES),
             f * 10f64.powf(NEAR_DECADES),
@@ -176,15 +175,15 @@ fn tune_pem_force(
         ForceSearch::Coarse => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 6, 2),
         ForceSearch::Near(_) => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 11, 6),
     };
-    // The near search runs alone (after the level choice): its grid on both cores (the same
-    // points and comparisons, so the same answer). The coarse searches already run one
-    // level per core.
+    // The near search runs alone (after the level choice): its grid and first golden pair on
+    // both cores (the same points and comparisons, so the same answer). The coarse searches
+    // already run one level per core.
     let (force, ll, _) = match search {
         ForceSearch::Near(_) => {
-            crate::estimate::tuning::maximise_log_parallel(lo, hi, grid, refine, &loglik)
+            crate::estimate::tuning::maximise_log_parallel(lo, hi, grid, golden, &loglik)
         }
         ForceSearch::Coarse => {
-            crate::estimate::tuning::maximise_log(lo, hi, grid, refine, &mut |f| loglik(f))
+            crate::estimate::tuning::maximise_log(lo, hi, grid, golden, &mut |f| loglik(f))
         }
     };
     (force, ll)
