@@ -443,7 +443,7 @@ pub const DESCENT_PREFIX_SAMPLES: usize = 10_000;
 /// 8-sub-step data, 1 %): moved 2.6 errors, a rebuilt round changed no parameter by 0.005
 /// errors and cost 0.9 s; 50,000 samples (spring, 8-sub-step data, 100 % noise, seed 1,
 /// the Kalman passes' start `u` 25× the truth): moved 1,154 errors, `v` −2.22 errors off
-/// without the rebuilt round, +0.29 with it (+0.22 before the prefix).
+/// without the rebuilt round, +0.30 with it (+0.22 before the prefix).
 const PREFIX_REBUILD: f64 = 4.0;
 
 /// What the prediction-error refinement did (reported in the identification's
