@@ -2553,34 +2553,41 @@ mod tests {
         let mut result = two_passes();
         assert!(discard_pass_that_diverged(&mut result, &[-2.0e7], &diverged, 3).is_none());
         assert_eq!(result.passes.len(), 2);
-        // A failure that is not a divergence says nothing against the parameters.
-        let undetermined = IdentifyError::Undetermined {
-            pass: 3,
-            connection: "joint".into(),
-            posterior_std: 1.0,
-            rms: 1.0,
-        };
-        let mut result = two_passes();
-        assert!(discard_pass_that_diverged(&mut result, &[-1.4e7], &undetermined, 3).is_none());
-        assert_eq!(result.passes.len(), 2);
-        // Stations that no longer see the residual force with those parameters: the same.
-        let blind = IdentifyError::Estimate(EstimateError::RankDeficientSensitivity {
-            rank: 0,
-            needed: 1,
-            stations: 12,
-            condition: f64::INFINITY,
-        });
-        let mut result = two_passes();
-        assert!(discard_pass_that_diverged(&mut result, &[-1.4e7], &blind, 3).is_some());
-        assert_eq!(result.passes.len(), 1);
-        // An overflow is a divergence too.
-        let overflowed = IdentifyError::Estimate(EstimateError::Overflowed {
-            sample: 3,
-            magnitude: 1e200,
-        });
-        let mut result = two_passes();
-        assert!(discard_pass_that_diverged(&mut result, &[-1.4e7], &overflowed, 3).is_some());
-        assert_eq!(result.passes.len(), 1);
+        // A failure that is not a divergence says nothing against the parameters; stations
+        // that no longer see the residual force with them, or an overflow, do.
+        let cases = [
+            (
+                IdentifyError::Undetermined {
+                    pass: 3,
+                    connection: "joint".into(),
+                    posterior_std: 1.0,
+                    rms: 1.0,
+                },
+                false,
+            ),
+            (
+                IdentifyError::Estimate(EstimateError::RankDeficientSensitivity {
+                    rank: 0,
+                    needed: 1,
+                    stations: 12,
+                    condition: f64::INFINITY,
+                }),
+                true,
+            ),
+            (
+                IdentifyError::Estimate(EstimateError::Overflowed {
+                    sample: 3,
+                    magnitude: 1e200,
+                }),
+                true,
+            ),
+        ];
+        for (e, discarded) in cases {
+            let mut result = two_passes();
+            let note = discard_pass_that_diverged(&mut result, &[-1.4e7], &e, 3);
+            assert_eq!(note.is_some(), discarded, "{e}");
+            assert_eq!(result.passes.len(), if discarded { 1 } else { 2 }, "{e}");
+        }
     }
 
     #[test]

@@ -1663,6 +1663,14 @@ pub fn simulate(setup: &Setup, opts: &SimulateOptions) -> Result<Simulated, Simu
             "--substeps must be at least 1".into(),
         ));
     }
+    // A pulse that is not positive would give an impact of no force at all (silently).
+    if let Scenario::Free { pulse_s, .. } = opts.scenario
+        && !(pulse_s.is_finite() && pulse_s > 0.0)
+    {
+        return Err(SimulateError::Options(format!(
+            "--pulse must be > 0 s, got {pulse_s}"
+        )));
+    }
     let model = Model::assemble(setup)?;
     let h = opts.dt_s / opts.substeps as f64;
     let mut sys = TruthSystem::new(setup, &model, h)?;
@@ -2128,6 +2136,28 @@ dt_s = 0.001
         assert!((39..=42).contains(&first_move), "{first_move}");
         // While slipping, f = k δ + F sign(δ̇) holds to round-off.
         assert!(sim.stuck_fraction > 0.0 && sim.stuck_fraction < 1.0);
+    }
+
+    #[test]
+    fn an_impact_pulse_that_is_not_positive_is_refused_by_name() {
+        let s = Setup::from_toml(FRICTION_SDOF, "t").unwrap();
+        for pulse_s in [0.0, -1e-3, f64::NAN] {
+            let opts = SimulateOptions {
+                scenario: Scenario::Free {
+                    amplitude: 20.0,
+                    pulse_s,
+                },
+                steps: 10,
+                dt_s: 0.001,
+                substeps: 1,
+                noise: Noise::None,
+                seed: 1,
+            };
+            match simulate(&s, &opts) {
+                Err(SimulateError::Options(m)) => assert!(m.contains("--pulse"), "{m}"),
+                other => panic!("pulse {pulse_s}: {:?}", other.map(|_| ())),
+            }
+        }
     }
 
     #[test]
