@@ -10,8 +10,9 @@
 //! round-off); otherwise stop at `passes` and say it did not converge. "Moved" is the
 //! pass's output against the parameters it ran with (the fixed-point residual of the pass
 //! map). For the Kalman estimator the likelihood tuning is redone each pass until a pass
-//! moves every parameter by less than one standard error (at most three tunings), then
-//! frozen: re-tuning every pass kept moving the parameters and the passes never converged.
+//! moves every parameter by less than one standard error (at most three tunings; one when a
+//! refinement follows the passes, whose start they only are), then frozen: re-tuning every
+//! pass kept moving the parameters and the passes never converged.
 //! With the map fixed the passes converge linearly (ratio ≈ 0.4–0.75 measured); after two
 //! plain passes the next input is Aitken-extrapolated to the limit.
 //!
@@ -250,6 +251,16 @@ pub struct IdentifyOptions {
     /// the passes become a fixed-point iteration that can converge.
     pub retune_above_std_errors: f64,
     pub max_tunings: usize,
+    /// `max_tunings` when the passes' answer is the start of a refinement
+    /// (`output_error`): the refinement's answer is the minimiser of its own cost, and
+    /// the passes only need to bring it near. Why: the tunings were three quarters of the
+    /// passes' time and half the shipped replay's (0.8 → 0.45 s with one); measured over
+    /// seeds 371–390 (friction and spring setups, data sub-steps 1, 8, 64, noise 1, 10,
+    /// 100 %), coverage and worst errors were unchanged (friction 90–100 %, worst 3.0
+    /// against 91–100 %, 3.4), single answers moved 0.1–0.16 errors on average on
+    /// continuous data and 0.3–0.5 on data of the model's own discretisation, whose cost is
+    /// rough (ACCURACY.md, sixteenth session).
+    pub max_tunings_refined: usize,
     /// Options of the maximum-likelihood estimator (`EstimatorKind::Ml`).
     pub ml: crate::estimate::ml::MlOptions,
 }
@@ -285,6 +296,7 @@ impl IdentifyOptions {
             crlb: e.crlb,
             retune_above_std_errors: 1.0,
             max_tunings: 3,
+            max_tunings_refined: 1,
             ml: crate::estimate::ml::MlOptions::default(),
         }
     }
@@ -1211,7 +1223,12 @@ fn identify_once(
                             })
                         })
                         .unwrap_or(false);
-                    if settled || tunings >= opts.max_tunings {
+                    let limit = if opts.output_error {
+                        opts.max_tunings_refined
+                    } else {
+                        opts.max_tunings
+                    };
+                    if settled || tunings >= limit {
                         frozen = tuned;
                     }
                 }
@@ -1604,6 +1621,11 @@ fn finish_with_output_error(
                     ));
                 }
                 let rep = &r.report;
+                if let Some(gain) = rep.smooth_excitation_gain {
+                    result.notes.push(format!(
+                        "the excitation was taken as smooth between samples (each sample's mean that of a cubic through its neighbours, not of the straight line): its innovation likelihood was higher by {gain:.1} at the start values; a force that is piecewise linear between samples would be the other way"
+                    ));
+                }
                 result.notes.push(format!(
                     "`sign(u)` friction: refined by prediction error (the output-error cost of this chaotic law is rough and its descent stops in local minima): observer process-noise force {:.4e} N per sample at the connections (tuned by the innovation likelihood of the start values), closed-loop spectral radius {:.6}, normalised innovation cost {:.4} → {:.4}; standard errors by the Newey–West sandwich, the larger of its values over secants of ±1 and ±8 errors (lag {} samples; stated/naive {})",
                     rep.force_std,
