@@ -226,6 +226,9 @@ pub struct ReplayRequest {
     pub no_refine: bool,
     /// Write SVG plots here (`--plots DIR`, see [`crate::report`]).
     pub plots: Option<PathBuf>,
+    /// Replicates of the parametric bootstrap of a prediction-error answer (`--bootstrap N`,
+    /// 0: none).
+    pub bootstrap: usize,
 }
 
 /// What `replay` found.

@@ -208,7 +208,7 @@ fn is_sign(b: &Basis) -> bool {
 }
 
 /// Friction levels below zero are not a law the simulator can run; clamp them.
-fn feasible(basis: &[Basis], p: &[f64]) -> Vec<f64> {
+pub(crate) fn feasible(basis: &[Basis], p: &[f64]) -> Vec<f64> {
     p.iter()
         .zip(basis)
         .map(|(v, b)| if is_sign(b) { v.max(0.0) } else { *v })
@@ -482,6 +482,22 @@ pub struct PredictionErrorReport {
     /// When the excitation between samples was taken as smooth (`identify::pem`,
     /// "moment-matched" samples) rather than linear: the log-likelihood it gained.
     pub smooth_excitation_gain: Option<f64>,
+    /// The parametric bootstrap, when asked for (`identify::pem::bootstrap`).
+    pub bootstrap: Option<BootstrapReport>,
+}
+
+/// What the parametric bootstrap of a prediction-error answer found: `replicates` records
+/// simulated from the answer with the noise levels `noise` (per channel), `used` of them
+/// identified; per parameter the mean shift of their answers from the one they were
+/// simulated from (`shift`, subtracted from the answer) and their spread (`spread`, a floor
+/// under the errors).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct BootstrapReport {
+    pub replicates: usize,
+    pub used: usize,
+    pub noise: Vec<f64>,
+    pub shift: Vec<f64>,
+    pub spread: Vec<f64>,
 }
 
 /// One likelihood-ratio test of a start at rest on the innovations: the cost a refitted start
@@ -1283,6 +1299,7 @@ pub fn refine(
             noise_shift,
             noise_shift_failure,
             smooth_excitation_gain: None,
+            bootstrap: None,
             start_at_rest_tests: Vec::new(),
         },
         values: p,

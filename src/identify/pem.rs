@@ -549,6 +549,37 @@ pub(super) fn refine_by_prediction_error(
         r.report.start_at_rest_tests = tests;
     }
     r.report.smooth_excitation_gain = smooth_gain;
+    if opts.bootstrap > 0 && opts.initial_state.is_none() {
+        let t0 = std::time::Instant::now();
+        let boot = bootstrap(
+            setup,
+            model,
+            data,
+            sigma,
+            &r,
+            sub,
+            force_std.max(floor),
+            opts.output_error_iterations,
+            opts.bootstrap,
+        )?;
+        crate::par::phase("bootstrap", t0);
+        if boot.used * 2 >= boot.replicates {
+            let k = boot.used as f64;
+            let basis = setup.param_basis();
+            let corrected: Vec<f64> = r
+                .values
+                .iter()
+                .zip(&boot.shift)
+                .map(|(v, d)| v - d)
+                .collect();
+            r.values = crate::estimate::prediction_error::feasible(&basis, &corrected);
+            // The correction's own error (the shift's, spread/√k) widens the floor.
+            for (e, sp) in r.std_errors.iter_mut().zip(&boot.spread) {
+                *e = e.max(*sp) * (1.0 + 1.0 / k).sqrt();
+            }
+        }
+        r.report.bootstrap = Some(boot);
+    }
     Ok(PemStage::Refined(Box::new(r), sub))
 }
 
@@ -577,6 +608,7 @@ mod tests {
                 noise_shift: None,
                 noise_shift_failure: None,
                 smooth_excitation_gain: None,
+                bootstrap: None,
             },
         }
     }
@@ -667,4 +699,107 @@ pub(super) fn moment_matched(exc: &[Vec<f64>]) -> Vec<Vec<f64>> {
                 .collect()
         })
         .collect()
+}
+
+/// Seed of the bootstrap's synthetic noise (fixed: the same record gives the same answer).
+const BOOTSTRAP_SEED: u64 = 0x0062_6f6f_7473;
+
+/// Parametric bootstrap of the prediction-error answer `r`: `replicates` records of the
+/// model at `r`'s values driven by the record's excitation (`data`'s, as the model
+/// interpolates it) from rest, at the refinement's sub-steps, each with white noise at
+/// the record's level per channel — the smaller of `sigma` and the RMS of the record's
+/// misfit to that free run (a model error that the free run shows is not noise) — and each
+/// refined again from `r`'s values with the same observer force, level and noise model.
+/// Their mean shift from `r`'s values is the procedure's bias there and their spread its
+/// error, whatever the sandwich assumes.
+///
+/// Why: on sine tests with a `sign(u)` law the sandwich errors cover 58 % of the truths (16
+/// seeds, 8-sub-step data, 1 % noise) and `sign(u)` is −2.0 errors off on average: the
+/// measurement noise, fed into the model's state by the observer, moves its stick–slip
+/// switching systematically at the same phase of every cycle, which neither the sandwich
+/// (a local linearisation) nor `noise_bias` (a record of the noise alone, friction at 0)
+/// sees. The replicates run through the same switching. Costs one refinement per
+/// replicate (both cores); not the default.
+#[allow(clippy::too_many_arguments)]
+fn bootstrap(
+    setup: &Setup,
+    model: &Model,
+    data: &TestData,
+    sigma: &[f64],
+    r: &crate::estimate::prediction_error::PemRefined,
+    substeps: usize,
+    force_std: f64,
+    max_iter: usize,
+    replicates: usize,
+) -> Result<crate::estimate::prediction_error::BootstrapReport, crate::simulate::SimulateError> {
+    use crate::estimate::prediction_error::{BootstrapReport, refine};
+    use rand::{RngExt, SeedableRng};
+    use rand_distr::StandardNormal;
+    let free = crate::simulate::response_to_excitation(
+        setup,
+        model,
+        &r.values,
+        &data.excitation,
+        setup.dt_s,
+        substeps,
+    )?;
+    let m = sigma.len();
+    let n = free.len().min(data.response.len());
+    let noise: Vec<f64> = (0..m)
+        .map(|k| {
+            let ms = (0..n)
+                .map(|i| (data.response[i][k] - free[i][k]).powi(2))
+                .sum::<f64>()
+                / n.max(1) as f64;
+            sigma[k].min(ms.sqrt())
+        })
+        .collect();
+    let seeds: Vec<u64> = (0..replicates as u64).collect();
+    let answers: Vec<Option<Vec<f64>>> = crate::par::map(&seeds, |&b| {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(BOOTSTRAP_SEED.wrapping_add(b));
+        let response: Vec<Vec<f64>> = free[..n]
+            .iter()
+            .map(|row| {
+                row.iter()
+                    .zip(&noise)
+                    .map(|(y, s)| y + s * rng.sample::<f64, _>(StandardNormal))
+                    .collect()
+            })
+            .collect();
+        refine(
+            setup,
+            model,
+            &r.values,
+            &r.std_errors,
+            &data.excitation[..n],
+            &response,
+            sigma,
+            substeps,
+            force_std,
+            max_iter,
+            None,
+        )
+        .ok()
+        .map(|x| x.values)
+        .filter(|v| v.iter().all(|x| x.is_finite()))
+    });
+    let got: Vec<Vec<f64>> = answers.into_iter().flatten().collect();
+    let k = got.len().max(1) as f64;
+    let p = r.values.len();
+    let mean: Vec<f64> = (0..p)
+        .map(|j| got.iter().map(|v| v[j]).sum::<f64>() / k)
+        .collect();
+    let spread: Vec<f64> = (0..p)
+        .map(|j| {
+            let ss: f64 = got.iter().map(|v| (v[j] - mean[j]).powi(2)).sum();
+            (ss / (k - 1.0).max(1.0)).sqrt()
+        })
+        .collect();
+    Ok(BootstrapReport {
+        replicates,
+        used: got.len(),
+        noise,
+        shift: mean.iter().zip(&r.values).map(|(a, b)| a - b).collect(),
+        spread,
+    })
 }

@@ -207,6 +207,21 @@ fn identify_stage(
             }
         },
     );
+    // `--bootstrap` acts on the prediction-error refinement of `sign(u)` laws only.
+    let identification = identification.map(|mut id| {
+        let bootstrapped = id
+            .output_error
+            .as_ref()
+            .and_then(|r| r.prediction_error.as_ref())
+            .is_some_and(|p| p.bootstrap.is_some());
+        let said = id.notes.iter().any(|n| n.contains("parametric bootstrap"));
+        if opts.bootstrap > 0 && !bootstrapped && !said {
+            id.notes.push(
+                "`--bootstrap` not run: it applies to the prediction-error refinement of `sign(u)` laws, which did not give this answer".into(),
+            );
+        }
+        id
+    });
     let _ = tx.send(Msg::Flush);
     Ok(StageResult {
         data,
@@ -378,6 +393,7 @@ pub fn run(
     if req.no_refine {
         opts.output_error = false;
     }
+    opts.bootstrap = req.bootstrap;
     if let Some(l) = req.forgetting {
         if !(l > 0.0 && l <= 1.0) {
             return Err(AppError::BadOption {
