@@ -583,92 +583,6 @@ pub(super) fn refine_by_prediction_error(
     Ok(PemStage::Refined(Box::new(r), sub))
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::estimate::prediction_error::{PemRefined, PredictionErrorReport};
-
-    fn pem(values: Vec<f64>, std_errors: Vec<f64>) -> PemRefined {
-        PemRefined {
-            initial_state: None,
-            bound_likelihood_ratio: vec![None; values.len()],
-            naive: std_errors.clone(),
-            values,
-            std_errors,
-            report: PredictionErrorReport {
-                force_std: 4.2e4,
-                spectral_radius: 1.0,
-                substeps: 64,
-                iterations: 3,
-                cost_start: 0.97,
-                cost_end: 0.97,
-                hac_lag: 6,
-                sandwich_ratio: vec![1.0, 1.0],
-                start_at_rest_tests: Vec::new(),
-                noise_shift: None,
-                noise_shift_failure: None,
-                smooth_excitation_gain: None,
-                bootstrap: None,
-            },
-        }
-    }
-
-    /// The prediction-error result is refused (and the output error used) when a friction
-    /// level the passes had found ends on its bound or a standard error is zero or not finite; an interior result
-    /// with finite errors stands.
-    #[test]
-    fn prediction_error_on_the_friction_bound_is_undetermined() {
-        let text = std::fs::read_to_string(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/recordings/two-beam-friction.toml"
-        ))
-        .unwrap();
-        let setup = Setup::from_toml(&text, "two-beam-friction.toml").unwrap();
-        let n = setup.param_keys().len();
-        let basis: Vec<Basis> = setup.param_basis();
-        let f = basis
-            .iter()
-            .position(|b| matches!(b, Basis::SignU))
-            .unwrap();
-        let interior = pem(vec![1.0; n], vec![0.1; n]);
-        let (start, start_se) = (vec![1.0; n], vec![0.1; n]);
-        assert!(pem_undetermined(&setup, &interior, &start, &start_se).is_none());
-        let mut at_bound = interior.clone();
-        at_bound.values[f] = 0.0;
-        // The passes had found the friction (10 se above 0): the observer absorbed it.
-        let why = pem_undetermined(&setup, &at_bound, &start, &start_se).unwrap();
-        assert!(why.contains("bound 0"), "{why}");
-        // …unless the likelihood ratio against the start's level was measured: whether the
-        // innovations reject that level (the bound is determined) or fit it as well (the
-        // intervals were widened to reach it), the result stands.
-        for lr in [0.3, 25.0] {
-            let mut tested = at_bound.clone();
-            tested.bound_likelihood_ratio[f] = Some(lr);
-            assert!(pem_undetermined(&setup, &tested, &start, &start_se).is_none());
-        }
-        // The passes had found none (1 se above 0, or below 0): the bound is the answer.
-        let mut weak = start.clone();
-        weak[f] = 0.1;
-        assert!(pem_undetermined(&setup, &at_bound, &weak, &start_se).is_none());
-        weak[f] = -2.7;
-        assert!(pem_undetermined(&setup, &at_bound, &weak, &start_se).is_none());
-        let mut zero_se = at_bound.clone();
-        zero_se.std_errors[f] = 0.0;
-        assert!(
-            pem_undetermined(&setup, &zero_se, &weak, &start_se)
-                .unwrap()
-                .contains("standard error")
-        );
-        let mut nan = interior.clone();
-        nan.std_errors[(f + 1) % n] = f64::NAN;
-        assert!(
-            pem_undetermined(&setup, &nan, &start, &start_se)
-                .unwrap()
-                .contains("standard error")
-        );
-    }
-}
-
 /// Excitation samples whose linear interpolation has, over every sample interval, the mean
 /// of the cubic (Catmull–Rom) interpolant of the original samples:
 /// `p̃ᵢ = pᵢ − (pᵢ₋₁ − 2pᵢ + pᵢ₊₁)/12` (the end samples kept).
@@ -802,4 +716,90 @@ fn bootstrap(
         shift: mean.iter().zip(&r.values).map(|(a, b)| a - b).collect(),
         spread,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::estimate::prediction_error::{PemRefined, PredictionErrorReport};
+
+    fn pem(values: Vec<f64>, std_errors: Vec<f64>) -> PemRefined {
+        PemRefined {
+            initial_state: None,
+            bound_likelihood_ratio: vec![None; values.len()],
+            naive: std_errors.clone(),
+            values,
+            std_errors,
+            report: PredictionErrorReport {
+                force_std: 4.2e4,
+                spectral_radius: 1.0,
+                substeps: 64,
+                iterations: 3,
+                cost_start: 0.97,
+                cost_end: 0.97,
+                hac_lag: 6,
+                sandwich_ratio: vec![1.0, 1.0],
+                start_at_rest_tests: Vec::new(),
+                noise_shift: None,
+                noise_shift_failure: None,
+                smooth_excitation_gain: None,
+                bootstrap: None,
+            },
+        }
+    }
+
+    /// The prediction-error result is refused (and the output error used) when a friction
+    /// level the passes had found ends on its bound or a standard error is zero or not finite; an interior result
+    /// with finite errors stands.
+    #[test]
+    fn prediction_error_on_the_friction_bound_is_undetermined() {
+        let text = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/recordings/two-beam-friction.toml"
+        ))
+        .unwrap();
+        let setup = Setup::from_toml(&text, "two-beam-friction.toml").unwrap();
+        let n = setup.param_keys().len();
+        let basis: Vec<Basis> = setup.param_basis();
+        let f = basis
+            .iter()
+            .position(|b| matches!(b, Basis::SignU))
+            .unwrap();
+        let interior = pem(vec![1.0; n], vec![0.1; n]);
+        let (start, start_se) = (vec![1.0; n], vec![0.1; n]);
+        assert!(pem_undetermined(&setup, &interior, &start, &start_se).is_none());
+        let mut at_bound = interior.clone();
+        at_bound.values[f] = 0.0;
+        // The passes had found the friction (10 se above 0): the observer absorbed it.
+        let why = pem_undetermined(&setup, &at_bound, &start, &start_se).unwrap();
+        assert!(why.contains("bound 0"), "{why}");
+        // …unless the likelihood ratio against the start's level was measured: whether the
+        // innovations reject that level (the bound is determined) or fit it as well (the
+        // intervals were widened to reach it), the result stands.
+        for lr in [0.3, 25.0] {
+            let mut tested = at_bound.clone();
+            tested.bound_likelihood_ratio[f] = Some(lr);
+            assert!(pem_undetermined(&setup, &tested, &start, &start_se).is_none());
+        }
+        // The passes had found none (1 se above 0, or below 0): the bound is the answer.
+        let mut weak = start.clone();
+        weak[f] = 0.1;
+        assert!(pem_undetermined(&setup, &at_bound, &weak, &start_se).is_none());
+        weak[f] = -2.7;
+        assert!(pem_undetermined(&setup, &at_bound, &weak, &start_se).is_none());
+        let mut zero_se = at_bound.clone();
+        zero_se.std_errors[f] = 0.0;
+        assert!(
+            pem_undetermined(&setup, &zero_se, &weak, &start_se)
+                .unwrap()
+                .contains("standard error")
+        );
+        let mut nan = interior.clone();
+        nan.std_errors[(f + 1) % n] = f64::NAN;
+        assert!(
+            pem_undetermined(&setup, &nan, &start, &start_se)
+                .unwrap()
+                .contains("standard error")
+        );
+    }
 }
