@@ -10,7 +10,7 @@
 //! round-off); otherwise stop at `passes` and say it did not converge. "Moved" is the
 //! pass's output against the parameters it ran with (the fixed-point residual of the pass
 //! map). For the Kalman estimator the likelihood tuning is redone each pass until a pass
-//! moves every parameter by less than one standard error (at most three tunings; one when a
+//! moves every parameter by less than one standard error (at most three tunings; two when a
 //! refinement follows the passes, whose start they only are), then frozen: re-tuning every
 //! pass kept moving the parameters and the passes never converged.
 //! With the map fixed the passes converge linearly (ratio ≈ 0.4–0.75 measured); after two
@@ -252,14 +252,15 @@ pub struct IdentifyOptions {
     pub retune_above_std_errors: f64,
     pub max_tunings: usize,
     /// `max_tunings` when the passes' answer is the start of a refinement
-    /// (`output_error`): the refinement's answer is the minimiser of its own cost, and
-    /// the passes only need to bring it near. Why: the tunings were three quarters of the
-    /// passes' time and half the shipped replay's (0.8 → 0.45 s with one); measured over
+    /// (`output_error`): the refinement's answer is the minimiser of its own cost, and the
+    /// passes only need to bring it near. Two: at the setup's initial values and at the
+    /// first pass's answer — one alone, made at initial values far from the structure, was
+    /// frozen with a filter whose error recursion was unstable (ρ 1.003) and made the second
+    /// pass diverge at its first sample (`mixed_layout_noise_free_friction_and_spring`).
+    /// Why not three: the tunings were three quarters of the passes' time; measured over
     /// seeds 371–390 (friction and spring setups, data sub-steps 1, 8, 64, noise 1, 10,
-    /// 100 %), coverage and worst errors were unchanged (friction 90–100 %, worst 3.0
-    /// against 91–100 %, 3.4), single answers moved 0.1–0.16 errors on average on
-    /// continuous data and 0.3–0.5 on data of the model's own discretisation, whose cost is
-    /// rough (ACCURACY.md, sixteenth session).
+    /// 100 %) coverage and worst errors were unchanged with two and with one (ACCURACY.md,
+    /// sixteenth session).
     pub max_tunings_refined: usize,
     /// Replicates of the parametric bootstrap of a prediction-error answer (0: none; see
     /// `identify::pem::bootstrap`).
@@ -299,7 +300,7 @@ impl IdentifyOptions {
             crlb: e.crlb,
             retune_above_std_errors: 1.0,
             max_tunings: 3,
-            max_tunings_refined: 1,
+            max_tunings_refined: 2,
             bootstrap: 0,
             ml: crate::estimate::ml::MlOptions::default(),
         }
@@ -1653,15 +1654,18 @@ fn finish_with_output_error(
                             b.used, b.replicates, keys[js]
                         ));
                     }
-                    Some(b) => result.notes.push(format!(
-                        "parametric bootstrap not used: only {} of {} replicate records could be identified",
-                        b.used, b.replicates
-                    )),
+                    Some(b) => result.notes.push(match &b.failure {
+                        Some(why) => format!("parametric bootstrap not run: {why}"),
+                        None => format!(
+                            "parametric bootstrap not used: only {} of {} replicate records could be identified",
+                            b.used, b.replicates
+                        ),
+                    }),
                     None if opts.bootstrap > 0 => result.notes.push(
                         "parametric bootstrap not run: the record starts in motion, and its replicates are simulated from rest".into(),
                     ),
                     None if rep.smooth_excitation_gain.is_some() => result.notes.push(
-                        "the errors of a `sign(u)` law are the sandwich's: under random and impact excitation they covered 92–98 % of the truths, under a sine 58 % (ACCURACY.md); `--bootstrap 20` measures them on this record (97 % under the sine)".into(),
+                        "the errors of a `sign(u)` law are the sandwich's: under random and impact excitation they covered 91–100 % of the truths, under a sine 58 % (ACCURACY.md); `--bootstrap 20` measures them on this record (97 % under the sine)".into(),
                     ),
                     None => {}
                 }

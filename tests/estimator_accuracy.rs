@@ -381,7 +381,10 @@ fn a_whole_round_far_from_the_prefix_is_run_again_with_the_observer_rebuilt() {
 /// (45× the model's force scale) and the uncorrected answer had the joint damper `v`
 /// (truth 0) 5.8 standard errors off — a shift that stays while the errors shrink with the
 /// record. Corrected, every parameter within 2 errors (measured 0.44 at most), the shift is
-/// reported, and it moved `v` down by several of its errors.
+/// reported, and it moved `v` down by several of its errors. Since the passes tune twice
+/// (sixteenth session) their start gives an observer force of 1.5e4 N (7.6× smaller), the
+/// errors are 6× smaller, every parameter within 0.05 errors, and the shift of `v` is 1.0
+/// of its errors: asserted above 0.5.
 #[test]
 fn the_observer_noise_shift_is_removed_on_a_long_record_at_full_noise() {
     let s = shipped_friction_setup();
@@ -399,8 +402,8 @@ fn the_observer_noise_shift_is_removed_on_a_long_record_at_full_noise() {
         .expect("a `v` term");
     let se = id.final_parameters().unwrap()[v].std_error;
     assert!(
-        shift[v] > 3.0 * se,
-        "the shift of `v` ({:e}) should be several of its errors ({se:e})",
+        shift[v] > 0.5 * se,
+        "the shift of `v` ({:e}) should be a sizeable part of its error ({se:e})",
         shift[v]
     );
 }

@@ -498,6 +498,8 @@ pub struct BootstrapReport {
     pub noise: Vec<f64>,
     pub shift: Vec<f64>,
     pub spread: Vec<f64>,
+    /// Why no replicate was simulated, when none was.
+    pub failure: Option<String>,
 }
 
 /// One likelihood-ratio test of a start at rest on the innovations: the cost a refitted start

@@ -551,6 +551,7 @@ pub(super) fn refine_by_prediction_error(
     r.report.smooth_excitation_gain = smooth_gain;
     if opts.bootstrap > 0 && opts.initial_state.is_none() {
         let t0 = std::time::Instant::now();
+        // A bootstrap that cannot run leaves the answer as it is (the note says why).
         let boot = bootstrap(
             setup,
             model,
@@ -561,7 +562,15 @@ pub(super) fn refine_by_prediction_error(
             force_std.max(floor),
             opts.output_error_iterations,
             opts.bootstrap,
-        )?;
+        )
+        .unwrap_or_else(|e| crate::estimate::prediction_error::BootstrapReport {
+            replicates: opts.bootstrap,
+            used: 0,
+            noise: Vec::new(),
+            shift: Vec::new(),
+            spread: Vec::new(),
+            failure: Some(format!("the free run of the answer failed: {e}")),
+        });
         crate::par::phase("bootstrap", t0);
         if boot.used * 2 >= boot.replicates {
             let k = boot.used as f64;
@@ -715,6 +724,7 @@ fn bootstrap(
         noise,
         shift: mean.iter().zip(&r.values).map(|(a, b)| a - b).collect(),
         spread,
+        failure: None,
     })
 }
 
