@@ -604,17 +604,7 @@ impl PolishModel {
 
     /// `J̄ᵀJ̄`, `J̄ᵀr̄` and `p̄`: the Gauss–Newton step from `p̄` is the model's minimiser.
     fn normal(&self) -> (DMatrix<f64>, DVector<f64>, Vec<f64>) {
-        let k = self.cols.len();
-        let F = DMatrix::from_fn(k, k, |a, b| {
-            self.cols[a]
-                .iter()
-                .zip(&self.cols[b])
-                .map(|(x, y)| x * y)
-                .sum()
-        });
-        let g = DVector::from_fn(k, |a, _| {
-            self.cols[a].iter().zip(&self.r).map(|(x, y)| x * y).sum()
-        });
+        let (F, g) = normal_of(&self.cols, &self.r);
         (F, g, self.p.clone())
     }
 }
@@ -738,13 +728,16 @@ fn moved_beyond(j: &Jac, p: &[f64], from: &[f64]) -> f64 {
 }
 
 fn normal(j: &Jac) -> (DMatrix<f64>, DVector<f64>) {
-    let p = j.cols.len();
+    normal_of(&j.cols, &j.r)
+}
+
+/// `JᵀJ` and `Jᵀr` of columns `cols` and innovations `r`.
+fn normal_of(cols: &[Vec<f64>], r: &[f64]) -> (DMatrix<f64>, DVector<f64>) {
+    let p = cols.len();
     let F = DMatrix::from_fn(p, p, |a, b| {
-        j.cols[a].iter().zip(&j.cols[b]).map(|(x, y)| x * y).sum()
+        cols[a].iter().zip(&cols[b]).map(|(x, y)| x * y).sum()
     });
-    let g = DVector::from_fn(p, |a, _| {
-        j.cols[a].iter().zip(&j.r).map(|(x, y)| x * y).sum()
-    });
+    let g = DVector::from_fn(p, |a, _| cols[a].iter().zip(r).map(|(x, y)| x * y).sum());
     (F, g)
 }
 
