@@ -227,8 +227,8 @@ pub struct ReplayRequest {
     /// Write SVG plots here (`--plots DIR`, see [`crate::report`]).
     pub plots: Option<PathBuf>,
     /// Replicates of the parametric bootstrap of a prediction-error answer (`--bootstrap N`,
-    /// 0: none).
-    pub bootstrap: usize,
+    /// 0: none; `None`: automatic, see `IdentifyOptions::bootstrap`).
+    pub bootstrap: Option<usize>,
 }
 
 /// What `replay` found.

@@ -482,7 +482,10 @@ pub struct PredictionErrorReport {
     /// When the excitation between samples was taken as smooth (`identify::pem`,
     /// "moment-matched" samples) rather than linear: the log-likelihood it gained.
     pub smooth_excitation_gain: Option<f64>,
-    /// The parametric bootstrap, when asked for (`identify::pem::bootstrap`).
+    /// When the excitation repeats itself (`identify::pem::excitation_periodicity`): the
+    /// autocorrelation of its strongest repeat and that repeat's lag in samples.
+    pub periodic_excitation: Option<(f64, usize)>,
+    /// The parametric bootstrap, when asked for or automatic (`identify::pem::bootstrap`).
     pub bootstrap: Option<BootstrapReport>,
 }
 
@@ -1294,6 +1297,7 @@ pub fn refine(
             noise_shift,
             noise_shift_failure,
             smooth_excitation_gain: None,
+            periodic_excitation: None,
             bootstrap: None,
             start_at_rest_tests: Vec::new(),
         },

@@ -215,7 +215,7 @@ fn identify_stage(
             .and_then(|r| r.prediction_error.as_ref())
             .is_some_and(|p| p.bootstrap.is_some());
         let said = id.notes.iter().any(|n| n.contains("parametric bootstrap"));
-        if opts.bootstrap > 0 && !bootstrapped && !said {
+        if opts.bootstrap.is_some_and(|n| n > 0) && !bootstrapped && !said {
             id.notes.push(
                 "`--bootstrap` not run: it applies to the prediction-error refinement of `sign(u)` laws, which did not give this answer".into(),
             );
