@@ -1005,7 +1005,7 @@ fn a_sine_test_with_friction_is_bootstrapped_to_its_measured_errors() {
     };
     assert!(says(
         &boot,
-        "parametric bootstrap (automatic: the excitation is smooth"
+        "parametric bootstrap (automatic: the excitation repeats itself"
     ));
     assert!(says(&boot, ": 10 of 10 records"));
     assert!(says(
