@@ -263,8 +263,9 @@ pub struct IdentifyOptions {
     /// sixteenth session).
     pub max_tunings_refined: usize,
     /// Replicates of the parametric bootstrap of a prediction-error answer (`Some(0)`: none;
-    /// `None`: automatic, [`pem::AUTO_BOOTSTRAP_REPLICATES`] when the excitation was found smooth
-    /// between samples and none otherwise; see `identify::pem::bootstrap`).
+    /// `None`: automatic, [`pem::AUTO_BOOTSTRAP_REPLICATES`] when the excitation repeats
+    /// itself or was found smooth between samples and none otherwise; see
+    /// `identify::pem::bootstrap`).
     pub bootstrap: Option<usize>,
     /// Options of the maximum-likelihood estimator (`EstimatorKind::Ml`).
     pub ml: crate::estimate::ml::MlOptions,
