@@ -641,7 +641,7 @@ pub(super) fn moment_matched(exc: &[Vec<f64>]) -> Vec<Vec<f64>> {
 /// measured not to hold, and not otherwise (under random excitation they cover 91–100 %).
 /// Ten, not twenty: over 32 sine seeds (8-sub-step data, 1 % noise) 10 replicates covered
 /// 94 % of the truths (worst 3.3 errors) and 20 covered 91 % (worst 2.8) — equal within
-/// the sweep's own scatter — at half the time (~1.5 s at 2,000 samples); with the t
+/// the sweep's own scatter — at half the time (~1.7–2 s at 2,000 samples); with the t
 /// interval of the replicates ([`student_t_975`]) 95 % (worst 2.9). ACCURACY.md,
 /// seventeenth session.
 pub(crate) const AUTO_BOOTSTRAP_REPLICATES: usize = 10;
