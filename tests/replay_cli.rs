@@ -943,10 +943,13 @@ fn every_shipped_recording_replays_within_two_standard_errors() {
             let name = format!("recordings/two-beam-{setup}{kind}.mcap");
             let rec = repo(&name);
             let v = replay_json(&[rec.to_str().unwrap()]);
-            // The sine records too: before the bootstrap was automatic under smooth
-            // excitation, the sandwich errors covered 58 % over 16 fresh seeds of the
-            // friction setup's sine test (ACCURACY.md, sixteenth session).
+            // The sine records too: before the bootstrap was automatic under repeating or
+            // smooth excitation, the sandwich errors covered 58 % over 32 seeds of the
+            // friction setup's sine test (ACCURACY.md, seventeenth session).
             assert_within(&v, &name, 2.0);
+            // The bootstrap runs on the sine and impact records and on no random one.
+            let bootstrapped = !v["output_error"]["prediction_error"]["bootstrap"].is_null();
+            assert_eq!(bootstrapped, !kind.is_empty(), "{name}: bootstrap");
             // Every one starts at rest and none is called "in motion" (every free-decay
             // seed was, with a 20-sample impact; the sine records were, before the
             // excitation could be taken as smooth between samples).
@@ -971,8 +974,8 @@ fn every_shipped_recording_replays_within_two_standard_errors() {
 
 /// A sine test with a friction law: over 16 fresh seeds (8-sub-step data, 1 % noise) the
 /// sandwich errors covered 58 % of the truths, `sign(u)` −2.0 errors off on average; the
-/// parametric bootstrap, automatic when the excitation is smooth between samples, 94 % over
-/// 32 seeds (ACCURACY.md, seventeenth session). On the shipped friction-sine record: by
+/// parametric bootstrap, automatic when the excitation repeats itself or is smooth between
+/// samples, 95 % over 32 seeds (ACCURACY.md, seventeenth session). On the shipped friction-sine record: by
 /// default every parameter within 2 of the bootstrapped errors, all 10 replicates used, the
 /// friction's error at least 1.5× the sandwich's alone (the replicates spread ~2× wider than
 /// it says); `--bootstrap 0` gives the sandwich's errors back with a note saying what they

@@ -856,9 +856,6 @@ mod tests {
         }
     }
 
-    /// The prediction-error result is refused (and the output error used) when a friction
-    /// level the passes had found ends on its bound or a standard error is zero or not finite; an interior result
-    /// with finite errors stands.
     /// A sine repeats itself at its period; a multi-sine at the common period; white noise,
     /// a single pulse and a constant do not.
     #[test]
@@ -893,6 +890,9 @@ mod tests {
         }
     }
 
+    /// The prediction-error result is refused (and the output error used) when a friction
+    /// level the passes had found ends on its bound or a standard error is zero or not finite; an interior result
+    /// with finite errors stands.
     #[test]
     fn prediction_error_on_the_friction_bound_is_undetermined() {
         let text = std::fs::read_to_string(concat!(
