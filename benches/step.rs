@@ -58,6 +58,7 @@ fn bench_step(c: &mut Criterion) {
                         smooth: false,
                         semi_implicit: true,
                         likelihood_only: false,
+                        horizon: None,
                     },
                     0,
                 )

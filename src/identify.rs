@@ -572,6 +572,7 @@ pub fn build_estimator(
                 smooth: true,
                 semi_implicit: opts.semi_implicit,
                 likelihood_only: false,
+                horizon: (samples > 0).then_some(samples),
             };
             let mut est = KalmanEstimator::with_options(inputs, ko, samples)?;
             if let Some(x) = &opts.initial_state {
@@ -641,12 +642,18 @@ fn kalman_log_likelihood(
         channel_sigma: sigma.to_vec(),
         spectral_diagnostics: false,
     };
+    let len = if opts.tune_samples > 0 {
+        data.len().min(opts.tune_samples)
+    } else {
+        data.len()
+    };
     let ko = KalmanOptions {
         force_walk_std: walk,
         model_error_std: model_error,
         smooth: false,
         semi_implicit: opts.semi_implicit,
         likelihood_only: true,
+        horizon: Some(len),
     };
     let Ok(mut est) = KalmanEstimator::with_options(inputs, ko, 0) else {
         return f64::NEG_INFINITY;
@@ -654,11 +661,6 @@ fn kalman_log_likelihood(
     if let Some(x) = &opts.initial_state {
         est.set_initial_state(x);
     }
-    let len = if opts.tune_samples > 0 {
-        data.len().min(opts.tune_samples)
-    } else {
-        data.len()
-    };
     let mut out = StepOutput::new(setup.connections.len());
     est.start(data.samples[0], &data.excitation[0]);
     for i in 1..len {
@@ -688,7 +690,7 @@ pub const TUNE_SAMPLES: usize = 10_000;
 /// Choose the Kalman estimator's random-walk std σ_R (and, when `opts.tune_noise_scale`, a
 /// common scale of the estimated channel noise levels) by maximising the innovation
 /// likelihood of filter-only runs: σ_R over a log grid of 1e-6…1e2 × the force scale with
-/// golden-section refinement, then the noise scale over 1e-8…1e1, then σ_R again around
+/// Brent's method ([`crate::estimate::tuning::maximise_log`]), then the noise scale over 1e-8…1e1, then σ_R again around
 /// the new optimum.
 pub fn tune_kalman(
     setup: &Setup,

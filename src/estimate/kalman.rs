@@ -123,6 +123,9 @@ pub struct KalmanOptions {
     /// Riccati solve), the posterior deformation stds and the sensitivity SVDs — such an
     /// estimator's diagnostics carry none of them (`error_spectral_radius` is `None`).
     pub likelihood_only: bool,
+    /// Samples of the record the filter runs over, when known (a batch run): caps the
+    /// steady-state Riccati solve's horizon ([`DARE_HORIZON_RECORDS`]). `None`: a stream.
+    pub horizon: Option<usize>,
 }
 
 impl KalmanEstimator {
@@ -139,6 +142,7 @@ impl KalmanEstimator {
             smooth: true,
             semi_implicit: true,
             likelihood_only: false,
+            horizon: (samples > 0).then_some(samples),
         };
         Self::with_options(inp, opts, samples)
     }
@@ -188,7 +192,7 @@ impl KalmanEstimator {
             m,
             inp.channel_sigma.iter().map(|s| s * s),
         ));
-        let P = solve_filter_dare(&A, &H, &Q, &V);
+        let P = solve_filter_dare(&A, &H, &Q, &V, opts.horizon);
         let S = &H * &P * H.transpose() + &V;
         let S = (&S + S.transpose()) * 0.5;
         let chol = S
@@ -863,13 +867,39 @@ const DARE_MAX_STEPS: usize = 80;
 /// 2× per iteration to 1e-7–1e-6 of the solution and they stopped at the 80-iteration cap
 /// with that error (and ~40 % of all iterations spent on it). The Kalman tuning's time went
 /// down by a third.
+///
+/// `horizon`: the length, in samples, of the record the filter will run over, when known.
+/// The doubling then stops at a horizon of [`DARE_HORIZON_RECORDS`] records (see there);
+/// `None` (a live stream): at convergence.
 pub fn solve_filter_dare(
     A: &DMatrix<f64>,
     H: &DMatrix<f64>,
     Q: &DMatrix<f64>,
     V: &DMatrix<f64>,
+    horizon: Option<usize>,
 ) -> DMatrix<f64> {
-    filter_dare_doubling(A, H, Q, V).0
+    let max_steps = horizon.map_or(DARE_MAX_STEPS, doubling_steps_for);
+    filter_dare_doubling(A, H, Q, V, max_steps).0
+}
+
+/// Horizon, in lengths of the record at hand, beyond which [`solve_filter_dare`] does not
+/// iterate the Riccati equation. The doubling's k-th iterate is the a-priori covariance
+/// after 2ᵏ filter steps from `Q`; what it still changes past 64 record lengths belongs to
+/// states whose filter memory (√(measurement / process noise), in samples) is beyond that —
+/// states the record's samples move by under 1/64 of their steady-state correction, so the
+/// record's innovations (and the likelihood the tunings maximise) cannot tell the two
+/// covariances apart.
+/// Why: on the paper model the structure is undamped and the prediction-error observer's
+/// process noise reaches the modes only through a 1e-6 model error, so their memory is
+/// ~2³⁰ samples and its Riccati solves took 30–36 doubling steps to a covariance that no
+/// 2,000-sample record can use (a quarter of a replay's CPU time was Riccati solves;
+/// BENCHMARKS.md, eighteenth session).
+pub const DARE_HORIZON_RECORDS: usize = 64;
+
+/// Doubling steps that reach a horizon of [`DARE_HORIZON_RECORDS`] × `samples`.
+fn doubling_steps_for(samples: usize) -> usize {
+    let horizon = (DARE_HORIZON_RECORDS as f64) * samples.max(1) as f64;
+    (horizon.log2().ceil() as usize).clamp(1, DARE_MAX_STEPS)
 }
 
 /// [`solve_filter_dare`] and the number of doubling steps it took.
@@ -878,6 +908,7 @@ fn filter_dare_doubling(
     H: &DMatrix<f64>,
     Q: &DMatrix<f64>,
     V: &DMatrix<f64>,
+    max_steps: usize,
 ) -> (DMatrix<f64>, usize) {
     let nz = A.nrows();
     let vinv = V
@@ -890,7 +921,7 @@ fn filter_dare_doubling(
     let id = DMatrix::<f64>::identity(nz, nz);
     let (mut last_change, mut peak_change) = (f64::INFINITY, 0.0f64);
     let mut steps = 0;
-    for _ in 0..DARE_MAX_STEPS {
+    for _ in 0..max_steps {
         steps += 1;
         let w = &id + &Gk * &Hk;
         let lu = w.lu();
@@ -1124,6 +1155,7 @@ dt_s = 0.001
                 smooth: false,
                 semi_implicit: true,
                 likelihood_only,
+                horizon: Some(steps),
             };
             let mut est = KalmanEstimator::with_options(inputs, ko, 0).unwrap();
             let mut out = StepOutput::new(1);
@@ -1208,7 +1240,7 @@ dt_s = 0.001
             let qx = &gamma_all * gamma_all.transpose() * (MODEL_ERROR_RELATIVE * scale).powi(2);
             let mut qv = Q.view_mut((0, 0), (3 * n, 3 * n));
             qv += qx;
-            let (P, steps) = filter_dare_doubling(&A, &H, &Q, &V);
+            let (P, steps) = filter_dare_doubling(&A, &H, &Q, &V, DARE_MAX_STEPS);
             assert!(steps < DARE_MAX_STEPS, "walk {walk:e}: {steps} steps");
             // One plain Riccati step from the answer moves it by round-off only.
             let S = &H * &P * H.transpose() + &V;
@@ -1228,7 +1260,7 @@ dt_s = 0.001
         let H = DMatrix::from_row_slice(1, 3, &[1.0, 0.0, 0.0]);
         let Q = DMatrix::from_diagonal(&DVector::from_row_slice(&[1e-3, 1e-3, 1e-2]));
         let V = DMatrix::from_element(1, 1, 0.1);
-        let p = solve_filter_dare(&A, &H, &Q, &V);
+        let p = solve_filter_dare(&A, &H, &Q, &V, None);
         let mut it = Q.clone();
         for _ in 0..20000 {
             let s = &H * &it * H.transpose() + &V;
@@ -1236,5 +1268,36 @@ dt_s = 0.001
             it = &A * &it * A.transpose() - &k * &H * &it * A.transpose() + &Q;
         }
         assert!((&p - &it).amax() < 1e-10 * it.amax(), "{p} vs {it}");
+    }
+
+    /// With a record length the solve is the Riccati iterate at 64 record lengths (from
+    /// `P₁ = Q`), not the steady state: on a slow mode (memory ~10⁴ samples) and a 4-sample
+    /// record, the iterate after 256 steps, still well short of the steady state.
+    #[test]
+    fn a_horizon_gives_the_riccati_iterate_at_64_records() {
+        let A = DMatrix::from_row_slice(2, 2, &[1.0, 1.0, 0.0, 1.0]);
+        let H = DMatrix::from_row_slice(1, 2, &[1.0, 0.0]);
+        let Q = DMatrix::from_diagonal(&DVector::from_row_slice(&[1e-10, 1e-12]));
+        let V = DMatrix::from_element(1, 1, 1.0);
+        let riccati = |p: &DMatrix<f64>| {
+            let s = &H * p * H.transpose() + &V;
+            let k = &A * p * H.transpose() * s.try_inverse().unwrap();
+            &A * p * A.transpose() - &k * &H * p * A.transpose() + &Q
+        };
+        assert_eq!(doubling_steps_for(4), 8);
+        let capped = solve_filter_dare(&A, &H, &Q, &V, Some(4));
+        let mut it = Q.clone();
+        for _ in 1..256 {
+            it = riccati(&it);
+        }
+        assert!(
+            (&capped - &it).amax() < 1e-8 * it.amax(),
+            "{capped} vs {it}"
+        );
+        let steady = solve_filter_dare(&A, &H, &Q, &V, None);
+        assert!(
+            (&steady - &it).amax() > 0.1 * steady.amax(),
+            "{steady} vs {it}"
+        );
     }
 }

@@ -258,7 +258,8 @@ fn bounded_step(
 }
 
 /// The observer for the law `params` (its linear terms) with process-noise force `force_std`
-/// (N per sample) at the connections and channel noise `sigma`.
+/// (N per sample) at the connections and channel noise `sigma`, for a record of `samples`
+/// samples (its gain's Riccati horizon, [`super::kalman::DARE_HORIZON_RECORDS`]).
 pub fn predictor(
     setup: &Setup,
     model: &Model,
@@ -266,6 +267,7 @@ pub fn predictor(
     sigma: &[f64],
     substeps: usize,
     force_std: f64,
+    samples: usize,
 ) -> Result<Predictor, SimulateError> {
     let n = model.n();
     let m = model.stations.len();
@@ -297,7 +299,7 @@ pub fn predictor(
         if idx == j { 1.0 } else { 0.0 }
     });
     let V = DMatrix::from_diagonal(&DVector::from_iterator(m, sigma.iter().map(|s| s * s)));
-    let P = solve_filter_dare(&phi, &H, &Q, &V);
+    let P = solve_filter_dare(&phi, &H, &Q, &V, Some(samples));
     let S = &H * &P * H.transpose() + &V;
     let S = (&S + S.transpose()) * 0.5;
     let chol = S.cholesky().ok_or(SimulateError::Singular)?;
@@ -932,7 +934,7 @@ pub fn refine(
             excitation.len()
         };
         let (excitation, response) = (&excitation[..len], &response[..len]);
-        let mut pred = predictor(setup, model, &p, sigma, substeps, force_std)?;
+        let mut pred = predictor(setup, model, &p, sigma, substeps, force_std, len)?;
         pred.initial = initial.map(<[f64]>::to_vec);
         // A record in motion: refit the start state with this observer (twice: the
         // friction's switching makes the innovations only nearly affine in it).
@@ -1714,7 +1716,7 @@ mod tests {
             })
             .collect();
         let sigma: Vec<f64> = rms.iter().map(|r| 0.05 * r).collect();
-        let mut pred = predictor(&setup, &model, &params, &sigma, 1, 100.0).unwrap();
+        let mut pred = predictor(&setup, &model, &params, &sigma, 1, 100.0, resp.len()).unwrap();
         let nz = 3 * model.n();
         let start: Vec<f64> = (0..nz)
             .map(|i| {

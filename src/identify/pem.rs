@@ -59,17 +59,17 @@ const FORCE_TUNE_SAMPLES: usize = 10_000;
 
 /// Range and grid of the observer's process-noise tuning, relative to the model's force
 /// scale (`kalman::force_scale_of`, 1.75e3 N on the two-beam model): 1e-2 … 1e3 of it,
-/// 11 grid points (half decades) then 6 golden-section steps in log space.
+/// 11 grid points (half decades) then at most 6 steps of Brent's method in log space.
 const PEM_TUNE_RANGE: [f64; 2] = [1e-2, 1e3];
 
 /// How [`tune_pem_force`] searches the observer force.
 #[derive(Debug, Clone, Copy)]
 enum ForceSearch {
-    /// Over [`PEM_TUNE_RANGE`]: decade grid, 2 golden-section steps — enough to compare the
+    /// Over [`PEM_TUNE_RANGE`]: decade grid, 2 steps of Brent's method — enough to compare the
     /// likelihoods of the sub-step levels (they differ by far more than what a finer search
     /// gains), at 8 runs instead of 17 per level.
     Coarse,
-    /// ± [`NEAR_DECADES`] around a force already found, half-decade grid, 6 golden steps
+    /// ± [`NEAR_DECADES`] around a force already found, half-decade grid, at most 6 Brent steps
     /// (not positive or not finite: over the whole range, half-decade grid).
     Near(f64),
 }
@@ -98,7 +98,8 @@ fn pem_log_likelihood(
 ) -> f64 {
     use crate::estimate::prediction_error::{innovations, predictor};
     let n = data.len() as f64;
-    let Ok(mut pred) = predictor(setup, model, start, sigma, substeps, force_std) else {
+    let Ok(mut pred) = predictor(setup, model, start, sigma, substeps, force_std, data.len())
+    else {
         return f64::NEG_INFINITY;
     };
     pred.initial = initial.map(<[f64]>::to_vec);
@@ -165,7 +166,7 @@ fn tune_pem_force(
     let loglik = |fs: f64| -> f64 {
         pem_log_likelihood(setup, model, data, sigma, start, substeps, initial, fs)
     };
-    let (lo, hi, grid, golden) = match search {
+    let (lo, hi, grid, refine) = match search {
         ForceSearch::Near(f) if f.is_finite() && f > 0.0 => (
             f / 10f64.powf(NEAR_DECADES),
             f * 10f64.powf(NEAR_DECADES),
@@ -175,15 +176,15 @@ fn tune_pem_force(
         ForceSearch::Coarse => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 6, 2),
         ForceSearch::Near(_) => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 11, 6),
     };
-    // The near search runs alone (after the level choice): its grid and first golden pair on
+    // The near search runs alone (after the level choice): its grid on
     // both cores (the same points and comparisons, so the same answer). The coarse searches
     // already run one level per core.
     let (force, ll, _) = match search {
         ForceSearch::Near(_) => {
-            crate::estimate::tuning::maximise_log_parallel(lo, hi, grid, golden, &loglik)
+            crate::estimate::tuning::maximise_log_parallel(lo, hi, grid, refine, &loglik)
         }
         ForceSearch::Coarse => {
-            crate::estimate::tuning::maximise_log(lo, hi, grid, golden, &mut |f| loglik(f))
+            crate::estimate::tuning::maximise_log(lo, hi, grid, refine, &mut |f| loglik(f))
         }
     };
     (force, ll)
@@ -299,7 +300,7 @@ fn start_motion(
     tests: &mut Vec<crate::estimate::prediction_error::StartAtRestTest>,
 ) -> Result<Option<super::MotionInRecord>, crate::simulate::SimulateError> {
     use crate::estimate::prediction_error::{innovations, predictor};
-    let pred = predictor(setup, model, params, sigma, substeps, force_std)?;
+    let pred = predictor(setup, model, params, sigma, substeps, force_std, data.len())?;
     let (r0, cost) = innovations(
         setup,
         model,

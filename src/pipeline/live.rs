@@ -837,6 +837,8 @@ fn online_estimator(
                 smooth: false,
                 semi_implicit: true,
                 likelihood_only: false,
+                // A stream: the steady state, whatever its memory.
+                horizon: None,
             };
             Box::new(KalmanEstimator::with_options(inputs, ko, 0)?)
         }
