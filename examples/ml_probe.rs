@@ -1,21 +1,16 @@
 //! Development probe of the maximum-likelihood estimator on one synthetic test.
 //! `cargo run --release --example ml_probe -- SETUP [--substeps 8] [--noise 0.01] [--seed 1] [--steps 2000] [--scenario random]`
+#[path = "common/args.rs"]
+mod args;
 use jointid::estimate::ml::{MlOptions, identify_ml};
 use jointid::identify::TestData;
 use jointid::model::Model;
-use jointid::setup::Setup;
 use jointid::simulate::{Noise, Scenario, SimulateOptions, simulate};
 
 fn main() -> anyhow::Result<()> {
-    let a: Vec<String> = std::env::args().collect();
-    let get = |k: &str, d: &str| -> String {
-        a.iter()
-            .position(|x| x == k)
-            .and_then(|i| a.get(i + 1))
-            .cloned()
-            .unwrap_or(d.to_string())
-    };
-    let setup = Setup::from_file(std::path::Path::new(&a[1]))?;
+    let a = args::Args::from_env();
+    let get = |k: &str, d: &str| a.get(k, d);
+    let (_, setup) = a.setup("ml_probe")?;
     let substeps: usize = get("--substeps", "8").parse()?;
     let noise: f64 = get("--noise", "0.01").parse()?;
     let seed: u64 = get("--seed", "1").parse()?;
@@ -54,7 +49,7 @@ fn main() -> anyhow::Result<()> {
         response: sim.response[skip..].to_vec(),
     };
     let model = Model::for_identification(&setup)?;
-    if a.iter().any(|x| x == "--bench") {
+    if a.flag("--bench") {
         let d = jointid::estimate::ml::Discretisation {
             scheme: jointid::estimate::ml::Scheme::Exact,
             substeps: 1,
@@ -69,9 +64,9 @@ fn main() -> anyhow::Result<()> {
         );
         return Ok(());
     }
-    if a.iter().any(|x| x == "--check") {
+    if a.flag("--check") {
         let ms: usize = get("--model-substeps", "1").parse()?;
-        let scheme = if a.iter().any(|x| x == "--newmark") {
+        let scheme = if a.flag("--newmark") {
             jointid::estimate::ml::Scheme::Newmark
         } else {
             jointid::estimate::ml::Scheme::Exact

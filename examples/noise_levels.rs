@@ -7,23 +7,15 @@
 //! ```
 //! Prints, per channel, the added noise's RMS, the estimate (`channel_noise_std`, the
 //! smallest over difference orders 1–6), their ratio and every order's estimate.
+#[path = "common/args.rs"]
+mod args;
 use jointid::estimate::tuning::{MAX_DIFFERENCE_ORDER, channel_noise_std, difference_noise_std};
-use jointid::setup::Setup;
 use jointid::simulate::{Noise, Scenario, SimulateOptions, simulate};
 
 fn main() -> anyhow::Result<()> {
-    let a: Vec<String> = std::env::args().collect();
-    let get = |k: &str, d: &str| -> String {
-        a.iter()
-            .position(|x| x == k)
-            .and_then(|i| a.get(i + 1))
-            .cloned()
-            .unwrap_or(d.to_string())
-    };
-    let path = a
-        .get(1)
-        .ok_or_else(|| anyhow::anyhow!("usage: noise_levels SETUP [options]"))?;
-    let setup = Setup::from_file(std::path::Path::new(path))?;
+    let a = args::Args::from_env();
+    let get = |k: &str, d: &str| a.get(k, d);
+    let (_, setup) = a.setup("noise_levels")?;
     let seed: u64 = get("--seed", "1").parse()?;
     let substeps: usize = get("--substeps", "8").parse()?;
     let level: f64 = get("--noise", "0.01").parse()?;
@@ -41,7 +33,7 @@ fn main() -> anyhow::Result<()> {
         simulate(
             &setup,
             &SimulateOptions {
-                scenario: scenario.clone(),
+                scenario,
                 steps,
                 dt_s: setup.dt_s,
                 substeps,

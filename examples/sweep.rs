@@ -11,23 +11,16 @@
 //! gives the same relative figures at any level, a friction law does not).
 //! `--skip K` drops the first K samples (a record that starts in motion). The setup's truth
 //! is the reference; every parameter of every seed counts toward coverage.
+#[path = "common/args.rs"]
+mod args;
 use jointid::identify::{IdentifyOptions, TestData, identify};
-use jointid::setup::{EstimatorKind, Setup};
+use jointid::setup::EstimatorKind;
 use jointid::simulate::{Noise, Scenario, SimulateOptions, simulate};
 
 fn main() -> anyhow::Result<()> {
-    let a: Vec<String> = std::env::args().collect();
-    let get = |k: &str, d: &str| -> String {
-        a.iter()
-            .position(|x| x == k)
-            .and_then(|i| a.get(i + 1))
-            .cloned()
-            .unwrap_or(d.to_string())
-    };
-    let path = a
-        .get(1)
-        .ok_or_else(|| anyhow::anyhow!("usage: sweep SETUP [options]"))?;
-    let setup = Setup::from_file(std::path::Path::new(path))?;
+    let a = args::Args::from_env();
+    let get = |k: &str, d: &str| a.get(k, d);
+    let (path, setup) = a.setup("sweep")?;
     let kind: EstimatorKind = get("--estimator", "ml")
         .parse()
         .map_err(anyhow::Error::msg)?;
@@ -87,7 +80,7 @@ fn main() -> anyhow::Result<()> {
                 // `--true-sigma`: the sensors' noise levels given (the simulation's), not
                 // estimated from the data.
                 let given;
-                let setup = if a.iter().any(|x| x == "--true-sigma") {
+                let setup = if a.flag("--true-sigma") {
                     let mut g = setup.clone();
                     for (sensor, sd) in g.sensors.iter_mut().zip(&sim.noise_std) {
                         sensor.noise_std = Some(*sd);
@@ -114,7 +107,7 @@ fn main() -> anyhow::Result<()> {
                     // failure even when it shows the passes' parameters.
                     Ok(id) if id.failure.is_some() => {
                         failed += 1;
-                        if a.iter().any(|x| x == "--verbose") {
+                        if a.flag("--verbose") {
                             for n in id.notes.iter().filter(|n| n.contains("not used")) {
                                 println!("  seed {seed} failed: {n}");
                             }
@@ -124,7 +117,7 @@ fn main() -> anyhow::Result<()> {
                     Ok(id) => match id.final_parameters() {
                         Some(ps) => {
                             answered += 1;
-                            if a.iter().any(|x| x == "--notes") {
+                            if a.flag("--notes") {
                                 println!("  seed {seed} stop: {}", id.stop_reason);
                                 for n in &id.notes {
                                     println!("  seed {seed} note: {n}");
@@ -140,7 +133,7 @@ fn main() -> anyhow::Result<()> {
                                 if e.abs() <= 1.96 {
                                     inside += 1;
                                 }
-                                if a.iter().any(|x| x == "--verbose") {
+                                if a.flag("--verbose") {
                                     // The prediction error's sandwich/naive ratio and
                                     // normalised cost, or the Cramér–Rao bound.
                                     let pem = id
