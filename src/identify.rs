@@ -690,8 +690,8 @@ pub const TUNE_SAMPLES: usize = 10_000;
 /// Choose the Kalman estimator's random-walk std σ_R (and, when `opts.tune_noise_scale`, a
 /// common scale of the estimated channel noise levels) by maximising the innovation
 /// likelihood of filter-only runs: σ_R over a log grid of 1e-6…1e2 × the force scale with
-/// Brent's method ([`crate::estimate::tuning::maximise_log`]), then the noise scale over 1e-8…1e1, then σ_R again around
-/// the new optimum.
+/// Brent's method ([`crate::estimate::tuning::maximise_log`]), then the noise scale over
+/// 1e-8…1e1, then σ_R again around the new optimum.
 pub fn tune_kalman(
     setup: &Setup,
     model: &Model,

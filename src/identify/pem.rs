@@ -176,9 +176,9 @@ fn tune_pem_force(
         ForceSearch::Coarse => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 6, 2),
         ForceSearch::Near(_) => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 11, 6),
     };
-    // The near search runs alone (after the level choice): its grid on
-    // both cores (the same points and comparisons, so the same answer). The coarse searches
-    // already run one level per core.
+    // The near search runs alone (after the level choice): its grid on both cores (the same
+    // points and comparisons, so the same answer). The coarse searches already run one level
+    // per core.
     let (force, ll, _) = match search {
         ForceSearch::Near(_) => {
             crate::estimate::tuning::maximise_log_parallel(lo, hi, grid, refine, &loglik)
