@@ -620,35 +620,8 @@ pub struct KalmanTuning {
     pub runs: usize,
 }
 
-/// Innovation log-likelihood of a filter-only Kalman run over (a prefix of) the data.
-#[allow(clippy::too_many_arguments)]
-fn kalman_log_likelihood(
-    setup: &Setup,
-    with_terms: &Model,
-    params: &[f64],
-    opts: &IdentifyOptions,
-    sigma: &[f64],
-    data: &TestData,
-    walk: f64,
-    model_error: f64,
-) -> f64 {
-    kalman_likelihood_parts(
-        setup,
-        with_terms,
-        params,
-        opts,
-        sigma,
-        data,
-        walk,
-        model_error,
-    )
-    .map_or(f64::NEG_INFINITY, |(c, n, log_det)| {
-        -0.5 * (c + n as f64 * log_det)
-    })
-}
-
-/// The innovation log-likelihood of a filter-only run, apart (see
-/// `KalmanEstimator::likelihood_parts`): `Σ eᵀΣ⁻¹e`, the number of innovations, `log det Σ`;
+/// The innovation log-likelihood of a filter-only Kalman run over (a prefix of) the data,
+/// apart (see `KalmanEstimator::likelihood_parts`): `Σ eᵀΣ⁻¹e`, the number of innovations, `log det Σ`;
 /// `None` when the filter cannot be built or diverges.
 #[allow(clippy::too_many_arguments)]
 fn kalman_likelihood_parts(
@@ -760,7 +733,10 @@ pub fn tune_kalman(
     };
     // The innovation log-likelihood at a noise scale, random-walk std and model-error std.
     let likelihood = |s: f64, w: f64, e: f64| {
-        kalman_log_likelihood(setup, &with_terms, params, opts, &scaled(s), data, w, e)
+        kalman_likelihood_parts(setup, &with_terms, params, opts, &scaled(s), data, w, e)
+            .map_or(f64::NEG_INFINITY, |(c, n, log_det)| {
+                -0.5 * (c + n as f64 * log_det)
+            })
     };
     let mut noise_scale = 1.0;
     // Every channel's level estimated and the model error not given: the noise scale is
