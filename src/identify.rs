@@ -256,11 +256,7 @@ pub struct IdentifyOptions {
     /// passes only need to bring it near. Two: at the setup's initial values and at the
     /// first pass's answer — one alone, made at initial values far from the structure, was
     /// frozen with a filter whose error recursion was unstable (ρ 1.003) and made the second
-    /// pass diverge at its first sample (`mixed_layout_noise_free_friction_and_spring`);
-    /// and one alone even when its filter is stable gives the prediction error a start
-    /// whose errors are wider, and its observer more force: tried in the nineteenth
-    /// session, the spring setup's errors came out 1.0–3.6× (`u`) and up to 10× (`sign(u)`
-    /// on its bound) wider over 50 seeds per row (ACCURACY.md).
+    /// pass diverge at its first sample (`mixed_layout_noise_free_friction_and_spring`).
     /// Why not three: the tunings were three quarters of the passes' time; measured over
     /// seeds 371–390 (friction and spring setups, data sub-steps 1, 8, 64, noise 1, 10,
     /// 100 %) coverage and worst errors were unchanged with two and with one (ACCURACY.md,
@@ -623,11 +619,9 @@ pub struct KalmanTuning {
     pub runs: usize,
 }
 
-/// The innovation log-likelihood of a filter-only Kalman run over (a prefix of) the data,
-/// apart (see `KalmanEstimator::likelihood_parts`): `Σ eᵀΣ⁻¹e`, the number of innovations, `log det Σ`;
-/// `None` when the filter cannot be built or diverges.
+/// Innovation log-likelihood of a filter-only Kalman run over (a prefix of) the data.
 #[allow(clippy::too_many_arguments)]
-fn kalman_likelihood_parts(
+fn kalman_log_likelihood(
     setup: &Setup,
     with_terms: &Model,
     params: &[f64],
@@ -636,7 +630,7 @@ fn kalman_likelihood_parts(
     data: &TestData,
     walk: f64,
     model_error: f64,
-) -> Option<(f64, usize, f64)> {
+) -> f64 {
     use crate::estimate::kalman::{KalmanEstimator, KalmanOptions};
     let inputs = EstimatorInputs {
         model: with_terms,
@@ -661,39 +655,28 @@ fn kalman_likelihood_parts(
         likelihood_only: true,
         horizon: Some(len),
     };
-    let mut est = KalmanEstimator::with_options(inputs, ko, 0).ok()?;
+    let Ok(mut est) = KalmanEstimator::with_options(inputs, ko, 0) else {
+        return f64::NEG_INFINITY;
+    };
     if let Some(x) = &opts.initial_state {
         est.set_initial_state(x);
     }
     let mut out = StepOutput::new(setup.connections.len());
     est.start(data.samples[0], &data.excitation[0]);
     for i in 1..len {
-        est.step(
-            data.samples[i],
-            &data.excitation[i],
-            &data.response[i],
-            &mut out,
-        )
-        .ok()?;
+        if est
+            .step(
+                data.samples[i],
+                &data.excitation[i],
+                &data.response[i],
+                &mut out,
+            )
+            .is_err()
+        {
+            return f64::NEG_INFINITY;
+        }
     }
-    Some(est.likelihood_parts())
-}
-
-/// The likelihood of parts `(Σ eᵀΣ⁻¹e, N, log det Σ)` of `m` channels maximised over a
-/// common scale `s` of the noise stds and the process noise: the innovations do not change
-/// (the gain is the same), `Σ` becomes `s²Σ`, so `ℓ(s) = −½(c/s² + N log det Σ + N m ln s²)`,
-/// largest at `s² = c/(N m)`. Returns that likelihood and `s` (`None` for an empty or
-/// degenerate run).
-fn concentrated_over_noise_scale(
-    (c, n, log_det): (f64, usize, f64),
-    m: usize,
-) -> Option<(f64, f64)> {
-    let nm = (n * m) as f64;
-    if !(c.is_finite() && c > 0.0 && nm > 0.0 && log_det.is_finite()) {
-        return None;
-    }
-    let s2 = c / nm;
-    Some((-0.5 * (nm + n as f64 * log_det + nm * s2.ln()), s2.sqrt()))
+    est.log_likelihood()
 }
 
 /// Samples on which the Kalman tuning's likelihood is evaluated (a prefix of longer records):
@@ -707,10 +690,8 @@ pub const TUNE_SAMPLES: usize = 10_000;
 /// Choose the Kalman estimator's random-walk std σ_R (and, when `opts.tune_noise_scale`, a
 /// common scale of the estimated channel noise levels) by maximising the innovation
 /// likelihood of filter-only runs: σ_R over a log grid of 1e-6…1e2 × the force scale with
-/// Brent's method ([`crate::estimate::tuning::maximise_log`]). With every channel's level
-/// estimated (the default), the noise scale is concentrated out analytically
-/// ([`concentrated_over_noise_scale`]) and that one search gives both; otherwise the noise
-/// scale over 1e-8…1e1, then σ_R again around the new optimum.
+/// Brent's method ([`crate::estimate::tuning::maximise_log`]), then the noise scale over
+/// 1e-8…1e1, then σ_R again around the new optimum.
 pub fn tune_kalman(
     setup: &Setup,
     model: &Model,
@@ -736,73 +717,14 @@ pub fn tune_kalman(
     };
     // The innovation log-likelihood at a noise scale, random-walk std and model-error std.
     let likelihood = |s: f64, w: f64, e: f64| {
-        kalman_likelihood_parts(setup, &with_terms, params, opts, &scaled(s), data, w, e)
-            .map_or(f64::NEG_INFINITY, |(c, n, log_det)| {
-                -0.5 * (c + n as f64 * log_det)
-            })
+        kalman_log_likelihood(setup, &with_terms, params, opts, &scaled(s), data, w, e)
     };
     let mut noise_scale = 1.0;
-    // Every channel's level estimated and the model error not given: the noise scale is
-    // concentrated out of the likelihood (see [`concentrated_over_noise_scale`]), which
-    // leaves one search, over the random-walk std relative to the noise scale — in 9 + ~6
-    // runs instead of the ~40 of the search by turns below. The model error keeps its
-    // value (1e-6 of the force scale, a regulariser of the undamped modes, not scaled with
-    // the noise as the exact law would have it): scaled, the answers were statistically the
-    // same over 900 sweep records but a friction record of the model's own discretisation
-    // at 10 % noise (the `replay_cli` test of seed 41, whose rough cost lets any change of
-    // the start move its answer) ended 7.6 errors off (ACCURACY.md, nineteenth session).
-    let concentrate = opts.tune_noise_scale
-        && opts.model_error_std.is_none()
-        && !estimated.is_empty()
-        && estimated.iter().all(|&e| e);
-    let (mut walk, mut ll);
-    if concentrate {
-        let m = sigma.len();
-        let scales_seen = std::sync::Mutex::new(Vec::<(f64, f64)>::new());
-        let profile = |w: f64| -> f64 {
-            let found = kalman_likelihood_parts(
-                setup,
-                &with_terms,
-                params,
-                opts,
-                sigma,
-                data,
-                w,
-                model_error,
-            )
-            .and_then(|parts| concentrated_over_noise_scale(parts, m));
-            match found {
-                Some((l, s)) => {
-                    if let Ok(mut seen) = scales_seen.lock() {
-                        seen.push((w, s));
-                    }
-                    l
-                }
-                None => f64::NEG_INFINITY,
-            }
-        };
-        let (w, l, n) = maximise_log(1e-6 * scale, 1e2 * scale, 9, 12, &profile);
-        runs += n;
-        let s = scales_seen
-            .into_inner()
-            .ok()
-            .and_then(|seen| seen.iter().find(|(x, _)| *x == w).map(|(_, s)| *s));
-        ll = l;
-        match s {
-            Some(s) => {
-                noise_scale = s;
-                walk = w * s;
-            }
-            None => walk = w,
-        }
-    } else {
-        let n;
-        (walk, ll, n) = maximise_log(1e-6 * scale, 1e2 * scale, 9, 12, &|w| {
-            likelihood(noise_scale, w, model_error)
-        });
-        runs += n;
-    }
-    if !concentrate && opts.tune_noise_scale && estimated.iter().any(|&e| e) {
+    let (mut walk, mut ll, n) = maximise_log(1e-6 * scale, 1e2 * scale, 9, 12, &|w| {
+        likelihood(noise_scale, w, model_error)
+    });
+    runs += n;
+    if opts.tune_noise_scale && estimated.iter().any(|&e| e) {
         let (s, l, n) = maximise_log(1e-8, 1e1, 10, 10, &|s| likelihood(s, walk, model_error));
         runs += n;
         if l > ll {
@@ -2640,80 +2562,6 @@ pub fn record(out: &StepOutput) -> SampleRecord {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// The law behind the concentrated tuning: scaling every noise std, the random walk and
-    /// the model error by `s` leaves the (non-linear, friction) filter's innovations as they
-    /// were and scales their covariance by `s²`.
-    #[test]
-    fn a_common_noise_scale_leaves_the_innovations_and_scales_their_covariance() {
-        use crate::simulate::{Noise, Scenario, SimulateOptions, simulate};
-        let setup = shipped_friction_setup();
-        let steps = 400;
-        let sim = simulate(
-            &setup,
-            &SimulateOptions {
-                scenario: Scenario::Random { rms: 2.0e4 },
-                steps,
-                dt_s: setup.dt_s,
-                substeps: 8,
-                noise: Noise::Additive(0.1),
-                seed: 5,
-            },
-        )
-        .expect("the shipped setup simulates");
-        let data = TestData {
-            samples: (0..steps as u64).collect(),
-            t_ns: vec![0; steps],
-            excitation: sim.excitation,
-            response: sim.response,
-        };
-        let model = Model::for_identification(&setup).expect("model");
-        let params = [2000.0, 2.0e5, 0.0, 0.0];
-        let with_terms = model.with_connection_terms(&setup, &params);
-        let opts = IdentifyOptions::from_setup(&setup);
-        let sigma: Vec<f64> = data
-            .response
-            .iter()
-            .fold(vec![0.0; setup.sensors.len()], |acc, y| {
-                acc.iter().zip(y).map(|(a, b)| a + b * b).collect()
-            })
-            .iter()
-            .map(|s2| 0.05 * (s2 / steps as f64).sqrt())
-            .collect();
-        let (walk, error) = (3.0e3, 1.0e-2);
-        let parts = |s: f64| {
-            let scaled: Vec<f64> = sigma.iter().map(|x| x * s).collect();
-            kalman_likelihood_parts(
-                &setup,
-                &with_terms,
-                &params,
-                &opts,
-                &scaled,
-                &data,
-                walk * s,
-                error * s,
-            )
-            .expect("the filter runs")
-        };
-        let (c1, n1, d1) = parts(1.0);
-        let m = sigma.len() as f64;
-        for s in [0.3, 7.0] {
-            let (c, n, d) = parts(s);
-            assert_eq!(n, n1);
-            assert!(
-                (c * s * s / c1 - 1.0).abs() < 1e-9,
-                "Σ eᵀΣ⁻¹e at s = {s}: {c} vs {c1}"
-            );
-            assert!((d - d1 - m * (s * s).ln()).abs() < 1e-8 * d1.abs().max(1.0));
-        }
-        // The concentrated likelihood is the largest over the scale and sits at its peak.
-        let (best, s_best) = concentrated_over_noise_scale((c1, n1, d1), sigma.len())
-            .expect("a positive innovation sum");
-        let at = |s: f64| -0.5 * (c1 / (s * s) + n1 as f64 * (d1 + m * (s * s).ln()));
-        assert!((at(s_best) - best).abs() < 1e-9 * best.abs());
-        assert!(at(0.9 * s_best) < best && at(1.1 * s_best) < best);
-        assert!(concentrated_over_noise_scale((0.0, n1, d1), sigma.len()).is_none());
-    }
 
     fn shipped_friction_setup() -> Setup {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))

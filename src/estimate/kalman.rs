@@ -390,12 +390,6 @@ impl KalmanEstimator {
         -0.5 * (self.nis_sum + self.nis_count as f64 * self.log_det)
     }
 
-    /// The log-likelihood's parts so far: `Σ eᵀΣ⁻¹e`, the number of innovations and
-    /// `log det Σ` (a likelihood concentrated over a common noise scale needs them apart).
-    pub fn likelihood_parts(&self) -> (f64, usize, f64) {
-        (self.nis_sum, self.nis_count, self.log_det)
-    }
-
     /// Mean normalised innovation squared per channel (≈ 1 when the tuning is consistent).
     pub fn mean_nis(&self) -> f64 {
         self.nis_sum / (self.nis_count.max(1) * self.stations.m()) as f64
