@@ -92,6 +92,11 @@ fn main() -> anyhow::Result<()> {
                 };
                 let mut opts = IdentifyOptions::from_setup(setup);
                 opts.estimator = kind;
+                // `--bootstrap N`: the parametric bootstrap's replicates (0: none; the
+                // default: automatic, as `jointid replay`).
+                if a.flag("--bootstrap") {
+                    opts.bootstrap = Some(a.get("--bootstrap", "0").parse()?);
+                }
                 let t = std::time::Instant::now();
                 let r = identify(
                     setup,
@@ -142,10 +147,16 @@ fn main() -> anyhow::Result<()> {
                                         .and_then(|o| o.prediction_error.as_ref());
                                     let extra = match (pem, p.crlb) {
                                         (Some(rep), _) => format!(
-                                            " sandwich/naive {:.3} cost {:.4} sub-steps {}",
+                                            " sandwich/naive {:.3} cost {:.4} sub-steps {} secants {:.2} bootstrap {} stuck {}",
                                             rep.sandwich_ratio.get(k).copied().unwrap_or(f64::NAN),
                                             rep.cost_end,
-                                            rep.substeps
+                                            rep.substeps,
+                                            rep.secant_disagreement.unwrap_or(f64::NAN),
+                                            rep.bootstrap.as_ref().map_or(0, |b| b.used),
+                                            id.passes.last().map_or(0, |p| p
+                                                .rows_excluded_stuck
+                                                .iter()
+                                                .sum::<usize>())
                                         ),
                                         (None, Some(b)) => format!(" bound {b:.3e}"),
                                         _ => String::new(),

@@ -1486,6 +1486,24 @@ fn observer_force_warning(force_std: f64, force_scale: f64) -> Option<String> {
     })
 }
 
+/// Why the automatic parametric bootstrap would run on this prediction-error answer (what the
+/// sandwich errors were measured to cover there), or `None` when it would not
+/// (`identify::pem`: a repeating or smooth excitation, or sandwiches that depend on their
+/// secant).
+fn bootstrap_occasion(
+    rep: &crate::estimate::prediction_error::PredictionErrorReport,
+) -> Option<String> {
+    if rep.periodic_excitation.is_some() {
+        Some("under a sine covered 58 % of the truths".into())
+    } else if rep.smooth_excitation_gain.is_some() {
+        Some("under an impact's smooth excitation covered 91 % of the truths".into())
+    } else {
+        rep.secant_disagreement
+            .filter(|d| *d > pem::BOOTSTRAP_SECANT_DISAGREEMENT)
+            .map(|d| format!("differ {d:.2}× between secants of ±1 and ±8 errors and, where they did under an excitation weak against the friction, covered 41–91 % of the truths"))
+    }
+}
+
 /// What the prediction error's correction of the measurement noise's shift did (see
 /// `estimate::prediction_error::PredictionErrorReport::noise_shift`): the largest shift in
 /// standard errors of the answer, and which parameter.
@@ -1655,12 +1673,16 @@ fn finish_with_output_error(
                             .fold(0.0f64, f64::max);
                         result.notes.push(format!(
                             "parametric bootstrap{}: {} of {} records simulated from the answer with this record's noise and refined again from the same start; the answer is corrected by their mean shift (largest {shift:.2} standard errors, `{}`) and every error is at least their spread (largest {ratio:.2}× the sandwich, as a t interval of {} replicates)",
-                            match (opts.bootstrap, rep.periodic_excitation) {
-                                (Some(_), _) => String::new(),
-                                (None, Some((rho, lag))) => format!(
+                            match (opts.bootstrap, rep.periodic_excitation, rep.smooth_excitation_gain) {
+                                (Some(_), _, _) => String::new(),
+                                (None, Some((rho, lag)), _) => format!(
                                     " (automatic: the excitation repeats itself, autocorrelation {rho:.2} at a lag of {lag} samples, and under a repeating excitation the sandwich errors of a `sign(u)` law covered 58 % of the truths; `--bootstrap 0` switches it off)"
                                 ),
-                                (None, None) => " (automatic: the excitation is smooth between samples, as an impact's, where the sandwich errors of a `sign(u)` law covered 91 % of the truths; `--bootstrap 0` switches it off)".to_string(),
+                                (None, None, Some(_)) => " (automatic: the excitation is smooth between samples, as an impact's, where the sandwich errors of a `sign(u)` law covered 91 % of the truths; `--bootstrap 0` switches it off)".to_string(),
+                                (None, None, None) => format!(
+                                    " (automatic: the sandwich errors differ {:.2}× between secants of ±1 and ±8 errors, so the innovations are not linear in the parameters over their errors — as under an excitation weak against the friction, where such sandwich errors covered 41–91 % of the truths; `--bootstrap 0` switches it off)",
+                                    rep.secant_disagreement.unwrap_or(f64::NAN)
+                                ),
                             },
                             b.used, b.replicates, keys[js], b.used
                         ));
@@ -1675,19 +1697,17 @@ fn finish_with_output_error(
                     None if opts.bootstrap.is_some_and(|n| n > 0)
                         || (opts.bootstrap.is_none()
                             && opts.initial_state.is_some()
-                            && (rep.smooth_excitation_gain.is_some()
-                                || rep.periodic_excitation.is_some())) =>
+                            && bootstrap_occasion(rep).is_some()) =>
                     {
                         result.notes.push(
                             "parametric bootstrap not run: the record starts in motion, and its replicates are simulated from rest".into(),
                         )
                     }
-                    None if rep.smooth_excitation_gain.is_some()
-                        || rep.periodic_excitation.is_some() =>
-                    {
-                        result.notes.push(
-                            "parametric bootstrap switched off (`--bootstrap 0`): the errors of this `sign(u)` law are the sandwich's, which under a sine covered 58 % of the truths (ACCURACY.md)".into(),
-                        )
+                    None if bootstrap_occasion(rep).is_some() => {
+                        result.notes.push(format!(
+                            "parametric bootstrap switched off (`--bootstrap 0`): the errors of this `sign(u)` law are the sandwich's, which {} (ACCURACY.md)",
+                            bootstrap_occasion(rep).unwrap_or_default()
+                        ))
                     }
                     None => {}
                 }

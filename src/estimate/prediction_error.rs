@@ -469,6 +469,13 @@ pub struct PredictionErrorReport {
     /// Stated (sandwich, the larger over [`ERROR_SECANTS`]) standard error over the naive
     /// `(JᵀJ)^{-1/2}` one of the ±1-error secant, per parameter.
     pub sandwich_ratio: Vec<f64>,
+    /// How much the sandwich depends on the secant it is made from: the largest, over the
+    /// parameters, of the ratio (≥ 1) between the errors over secants of ±1 and of ±8
+    /// errors ([`ERROR_SECANTS`]); `None` when the wide secant could not be made. Near 1
+    /// the innovations are linear in the parameters over their errors, which the sandwich
+    /// (a linearisation) assumes; far above, the errors are the parametric bootstrap's
+    /// (`identify::pem::BOOTSTRAP_SECANT_DISAGREEMENT`).
+    pub secant_disagreement: Option<f64>,
     /// The innovation tests of "the record starts at rest" run after the refinement (at the
     /// kept level, and again at the likeliest when the first passed its limit); empty for a
     /// record identified as in motion.
@@ -1180,7 +1187,14 @@ pub fn refine(
         }
     }
     let (mut se, naive, lag) = sandwich(&J, m).ok_or(SimulateError::Singular)?;
+    let mut secant_disagreement = None;
     if let Some((wide_se, _, _)) = wide_jacobian.as_ref().and_then(|w| sandwich(w, m)) {
+        secant_disagreement = Some(
+            se.iter()
+                .zip(&wide_se)
+                .map(|(a, b)| (a / b).max(b / a))
+                .fold(1.0f64, |acc, x| if x.is_nan() { acc } else { acc.max(x) }),
+        );
         for (a, b) in se.iter_mut().zip(&wide_se) {
             *a = a.max(*b);
         }
@@ -1296,6 +1310,7 @@ pub fn refine(
             cost_end: J.cost / nobs,
             hac_lag: lag,
             sandwich_ratio: se.iter().zip(&naive).map(|(a, b)| a / b).collect(),
+            secant_disagreement,
             noise_shift,
             noise_shift_failure,
             smooth_excitation_gain: None,
