@@ -150,8 +150,9 @@ enum Command {
         /// simulated from the answer with the record's noise, identified again; the answer is
         /// corrected by their mean shift and its errors are at least their spread (~0.15 s
         /// per replicate at 2,000 samples). Default: 10 when the excitation repeats itself
-        /// (a sine) or is smooth between samples (an impact), where the analytic errors do
-        /// not hold, else none; 0 switches it off (README, Accuracy).
+        /// (a sine), is smooth between samples (an impact), or the analytic errors depend on
+        /// the secant they are made from (an excitation weak against the friction) — where
+        /// they do not hold — else none; 0 switches it off (README, Accuracy).
         #[arg(long, value_name = "N")]
         bootstrap: Option<usize>,
         /// Write SVG plots here: force–deformation loops with the identified law, measured

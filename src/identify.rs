@@ -264,7 +264,8 @@ pub struct IdentifyOptions {
     pub max_tunings_refined: usize,
     /// Replicates of the parametric bootstrap of a prediction-error answer (`Some(0)`: none;
     /// `None`: automatic, [`pem::AUTO_BOOTSTRAP_REPLICATES`] when the excitation repeats
-    /// itself or was found smooth between samples and none otherwise; see
+    /// itself or was found smooth between samples, or the sandwich depends on its secant
+    /// ([`pem::BOOTSTRAP_SECANT_DISAGREEMENT`]), and none otherwise; see
     /// `identify::pem::bootstrap`).
     pub bootstrap: Option<usize>,
     /// Options of the maximum-likelihood estimator (`EstimatorKind::Ml`).

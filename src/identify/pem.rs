@@ -641,9 +641,10 @@ pub(super) fn moment_matched(exc: &[Vec<f64>]) -> Vec<Vec<f64>> {
 }
 
 /// Replicates of the parametric bootstrap when it is automatic (`IdentifyOptions::bootstrap`
-/// `None`): run when the excitation repeats itself ([`excitation_periodicity`]) or was found
-/// smooth between samples (an impact), where the sandwich errors of a `sign(u)` law are
-/// measured not to hold, and not otherwise (under random excitation they cover 91–100 %).
+/// `None`): run when the excitation repeats itself ([`excitation_periodicity`]), was found
+/// smooth between samples (an impact), or the sandwich depends on its secant
+/// ([`BOOTSTRAP_SECANT_DISAGREEMENT`]) — where the sandwich errors of a `sign(u)` law are
+/// measured not to hold — and not otherwise.
 /// Ten, not twenty: over 32 sine seeds (8-sub-step data, 1 % noise) 10 replicates covered
 /// 94 % of the truths (worst 3.3 errors) and 20 covered 91 % (worst 2.8) — equal within
 /// the sweep's own scatter — at half the time (~1.7–2 s at 2,000 samples); with the t
