@@ -432,6 +432,15 @@ fn simulate_and_replay_within(
     v
 }
 
+/// Whether one of a replay's JSON notes contains `what`.
+fn says(v: &serde_json::Value, what: &str) -> bool {
+    v["notes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .any(|n| n.as_str().unwrap().contains(what))
+}
+
 /// Every parameter of a replay's JSON within `k` standard errors of its truth.
 fn assert_within(v: &serde_json::Value, seed: &str, k: f64) {
     for p in v["parameters"].as_array().unwrap() {
@@ -999,13 +1008,6 @@ fn a_sine_test_with_friction_is_bootstrapped_to_its_measured_errors() {
         error(&boot),
         error(&plain)
     );
-    let says = |v: &serde_json::Value, what: &str| {
-        v["notes"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .any(|n| n.as_str().unwrap().contains(what))
-    };
     assert!(says(
         &boot,
         "parametric bootstrap (automatic: the excitation repeats itself"
@@ -1063,13 +1065,6 @@ fn a_weak_excitation_against_the_friction_is_bootstrapped() {
         "sign(u) {} errors off without",
         off(&plain)
     );
-    let says = |v: &serde_json::Value, what: &str| {
-        v["notes"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .any(|n| n.as_str().unwrap().contains(what))
-    };
     assert!(says(&boot, "(automatic: the sandwich errors differ"));
     assert!(says(
         &plain,
