@@ -1487,24 +1487,6 @@ fn observer_force_warning(force_std: f64, force_scale: f64) -> Option<String> {
     })
 }
 
-/// Why the automatic parametric bootstrap would run on this prediction-error answer (what the
-/// sandwich errors were measured to cover there), or `None` when it would not
-/// (`identify::pem`: a repeating or smooth excitation, or sandwiches that depend on their
-/// secant).
-fn bootstrap_occasion(
-    rep: &crate::estimate::prediction_error::PredictionErrorReport,
-) -> Option<String> {
-    if rep.periodic_excitation.is_some() {
-        Some("under a sine covered 58 % of the truths".into())
-    } else if rep.smooth_excitation_gain.is_some() {
-        Some("under an impact's smooth excitation covered 91 % of the truths".into())
-    } else {
-        rep.secant_disagreement
-            .filter(|d| *d > pem::BOOTSTRAP_SECANT_DISAGREEMENT)
-            .map(|d| format!("differ {d:.2}× between secants of ±1 and ±8 errors and, where they did under an excitation weak against the friction, covered 41–91 % of the truths"))
-    }
-}
-
 /// What the prediction error's correction of the measurement noise's shift did (see
 /// `estimate::prediction_error::PredictionErrorReport::noise_shift`): the largest shift in
 /// standard errors of the answer, and which parameter.
@@ -1695,22 +1677,20 @@ fn finish_with_output_error(
                             b.used, b.replicates
                         ),
                     }),
-                    None if opts.bootstrap.is_some_and(|n| n > 0)
-                        || (opts.bootstrap.is_none()
-                            && opts.initial_state.is_some()
-                            && bootstrap_occasion(rep).is_some()) =>
-                    {
-                        result.notes.push(
-                            "parametric bootstrap not run: the record starts in motion, and its replicates are simulated from rest".into(),
-                        )
+                    None => {
+                        let occasion = pem::bootstrap_occasion(rep);
+                        let asked = opts.bootstrap.is_some_and(|n| n > 0);
+                        let automatic = opts.bootstrap.is_none() && occasion.is_some();
+                        if asked || (automatic && opts.initial_state.is_some()) {
+                            result.notes.push(
+                                "parametric bootstrap not run: the record starts in motion, and its replicates are simulated from rest".into(),
+                            )
+                        } else if let Some(why) = occasion {
+                            result.notes.push(format!(
+                                "parametric bootstrap switched off (`--bootstrap 0`): the errors of this `sign(u)` law are the sandwich's, which {why} (ACCURACY.md)"
+                            ))
+                        }
                     }
-                    None if bootstrap_occasion(rep).is_some() => {
-                        result.notes.push(format!(
-                            "parametric bootstrap switched off (`--bootstrap 0`): the errors of this `sign(u)` law are the sandwich's, which {} (ACCURACY.md)",
-                            bootstrap_occasion(rep).unwrap_or_default()
-                        ))
-                    }
-                    None => {}
                 }
                 result.notes.push(format!(
                     "`sign(u)` friction: refined by prediction error (the output-error cost of this chaotic law is rough and its descent stops in local minima): observer process-noise force {:.4e} N per sample at the connections (tuned by the innovation likelihood of the start values), closed-loop spectral radius {:.6}, normalised innovation cost {:.4} → {:.4}; standard errors by the Newey–West sandwich, the larger of its values over secants of ±1 and ±8 errors (lag {} samples; stated/naive {})",
