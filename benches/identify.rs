@@ -1,7 +1,9 @@
 //! Time of a whole identification (`identify`) on the paper's two-beam model: the
 //! maximum-likelihood estimator on a law linear in the state (`u`, `v`), 2,000 and 20,000
-//! samples of 8-sub-step data at 1 % noise, and the default Kalman pipeline on the shipped
-//! spring setup for comparison. `cargo bench --bench identify`; figures go to BENCHMARKS.md.
+//! samples of 8-sub-step data at 1 % noise, the default Kalman pipeline on the shipped
+//! spring setup for comparison, and the default pipeline on the shipped friction setup at
+//! 2,000 and 100,000 samples (the two sizes issue 13 sets targets for: < 100 ms and < 5 s).
+//! `cargo bench --bench identify`; figures go to BENCHMARKS.md.
 use std::path::Path;
 
 use criterion::{Criterion, criterion_group, criterion_main};
@@ -34,16 +36,30 @@ fn setup_with_basis(basis: Option<(&str, &str)>) -> Setup {
     Setup::from_toml(&text, "spring u,v").expect("setup")
 }
 
+/// A shipped setup as it is.
+fn shipped(name: &str) -> Setup {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("recordings")
+        .join(name);
+    let text = std::fs::read_to_string(&path).expect("setup");
+    Setup::from_toml(&text, name).expect("setup")
+}
+
 fn data(setup: &Setup, n: usize) -> TestData {
+    data_from(setup, n, 1000.0, 4)
+}
+
+/// `n` samples of random excitation of RMS `rms` N, 8-sub-step data, 1 % noise.
+fn data_from(setup: &Setup, n: usize, rms: f64, seed: u64) -> TestData {
     let sim = simulate(
         setup,
         &SimulateOptions {
-            scenario: Scenario::Random { rms: 1000.0 },
+            scenario: Scenario::Random { rms },
             steps: n,
             dt_s: setup.dt_s,
             substeps: 8,
             noise: Noise::Additive(0.01),
-            seed: 4,
+            seed,
         },
     )
     .expect("simulate");
@@ -73,6 +89,19 @@ fn bench_identify(c: &mut Criterion) {
     group.bench_function("kalman_paper_basis_2000_samples", |b| {
         b.iter(|| identify(&paper, &d, &opts, None, &mut |_| {}, &mut |_, _| {}).expect("kalman"))
     });
+    // The shipped friction setup's default pipeline (the `jointid replay` of a recording
+    // made with `jointid simulate recordings/two-beam-friction.toml --substeps 8 --noise
+    // additive:0.01`), at its default excitation (20,000 N RMS).
+    let friction = shipped("two-beam-friction.toml");
+    let opts = IdentifyOptions::from_setup(&friction);
+    for n in [2_000, 100_000] {
+        let d = data_from(&friction, n, 20_000.0, 8);
+        group.bench_function(format!("kalman_friction_{n}_samples"), |b| {
+            b.iter(|| {
+                identify(&friction, &d, &opts, None, &mut |_| {}, &mut |_, _| {}).expect("kalman")
+            })
+        });
+    }
     group.finish();
 }
 

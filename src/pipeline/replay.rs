@@ -182,6 +182,7 @@ fn identify_stage(
         passes: opts.passes,
     }));
     let mut counted = (0usize, 0usize);
+    let t_identify = std::time::Instant::now();
     let identification = identify(
         setup,
         &data,
@@ -207,6 +208,7 @@ fn identify_stage(
             }
         },
     );
+    crate::par::phase("identify (whole call)", t_identify);
     // `--bootstrap` acts on the prediction-error refinement of `sign(u)` laws only.
     let identification = identification.map(|mut id| {
         let bootstrapped = id
