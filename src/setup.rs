@@ -30,7 +30,7 @@ pub enum SetupError {
     #[error("setup {origin}: {message}")]
     Parse { origin: String, message: String },
     #[error(
-        "setup {origin}: model.matrix_market: {error} (paths are relative to the setup file's directory)"
+        "setup {origin}: model.matrix_market: {error} (paths are relative to the setup file's directory; for a setup attached to a recording, to the recording's directory: the recording does not carry the matrix files, so keep them beside it or give `--setup` the setup file)"
     )]
     MatrixMarket {
         origin: String,

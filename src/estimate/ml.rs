@@ -1836,14 +1836,7 @@ fn finish(
                 }
             })
             .collect();
-        let c0: f64 = e.iter().map(|v| v * v).sum::<f64>().max(1e-300);
-        let mut qstat = 0.0;
-        for l in 1..=wl {
-            let cl: f64 = (l..n_all).map(|i| e[i] * e[i - l]).sum();
-            let rho = cl / c0;
-            qstat += rho * rho;
-        }
-        qstat *= n_all as f64;
+        let qstat = portmanteau(&e, wl);
         whiteness.push(qstat / wl as f64);
         let name = &prob.setup.sensors[k].name;
         if qstat > chi2_999 {
@@ -1980,8 +1973,23 @@ fn correlation_length(prob: &Problem, tr: &Trace, n: usize) -> usize {
     n / 4
 }
 
+/// Box–Pierce portmanteau statistic `N Σ_{l=1..lags} ρ_l²` of a residual series: χ² with
+/// `lags` degrees of freedom when the series is white (the model explains the data and the
+/// rest is sensor noise).
+pub(crate) fn portmanteau(e: &[f64], lags: usize) -> f64 {
+    let n = e.len();
+    let c0: f64 = e.iter().map(|v| v * v).sum::<f64>().max(1e-300);
+    let mut q = 0.0;
+    for l in 1..=lags.min(n.saturating_sub(1)) {
+        let cl: f64 = (l..n).map(|i| e[i] * e[i - l]).sum();
+        let rho = cl / c0;
+        q += rho * rho;
+    }
+    q * n as f64
+}
+
 /// 99.9 % quantile of χ² with `k` degrees of freedom (Wilson–Hilferty).
-fn chi2_quantile_999(k: usize) -> f64 {
+pub(crate) fn chi2_quantile_999(k: usize) -> f64 {
     let k = k as f64;
     let z = 3.090_232;
     let a = 2.0 / (9.0 * k);
