@@ -338,7 +338,7 @@ dt_s = 1.0e-3
         (seed >> 11) as f64 / (1u64 << 53) as f64
     };
     let sines: Vec<(f64, f64)> = (0..20)
-        .map(|_| (1.0 + 14.0 * uniform(), 6.28 * uniform()))
+        .map(|_| (1.0 + 14.0 * uniform(), std::f64::consts::TAU * uniform()))
         .collect();
     let force = |t: f64| -> f64 {
         sines
