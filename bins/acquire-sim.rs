@@ -1,6 +1,6 @@
 //! `acquire-sim`: a synthetic acquisition program. Simulates a test from the setup's true
 //! connection law and publishes excitation and response frames over iceoryx2, paced at the
-//! sampling rate, as real acquisition software would (see README "Live (iceoryx2)").
+//! sampling rate, as real acquisition software would (see docs/LIVE.md).
 
 use std::path::PathBuf;
 use std::process::ExitCode;

@@ -200,7 +200,7 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
-    /// Identify live from iceoryx2 excitation/response streams (see README "Live (iceoryx2)").
+    /// Identify live from iceoryx2 excitation/response streams (see docs/LIVE.md).
     #[command(
         after_help = "Example:\n  jointid live --setup recordings/two-beam-friction.toml --record session.mcap\n  (then, in another terminal: acquire-sim --setup recordings/two-beam-friction.toml --rate 51200 --seconds 60)"
     )]
@@ -210,7 +210,8 @@ enum Command {
         /// Record the aligned inputs, residuals, parameters and diagnostics (MCAP).
         #[arg(long)]
         record: Option<PathBuf>,
-        /// Online estimator: kalman (filter only, default) or paper.
+        /// Online estimator: kalman (filter only, default) or paper (ml has no online step
+        /// and is refused; the windows use the setup's `[estimator] kind`).
         #[arg(long, value_enum)]
         estimator: Option<EstimatorArg>,
         /// iceoryx2 global prefix (isolates sessions and test runs).
@@ -244,7 +245,7 @@ enum Command {
         #[arg(long)]
         window_every: Option<f64>,
         /// Tune the online Kalman filter by likelihood over the warm-up samples (better
-        /// online values; stalls the stepper ~0.3 s once, see README).
+        /// online values; stalls the stepper ~0.3 s once, see docs/LIVE.md).
         #[arg(long)]
         tune_warmup: bool,
         /// Record every k-th residual (1: all). The default keeps recordings compact (the
@@ -512,6 +513,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
             let mut o = LiveOptions::new(shm);
             o.estimator = match estimator {
                 Some(EstimatorArg::Paper) => EstimatorKind::Paper,
+                Some(EstimatorArg::Ml) => anyhow::bail!(
+                    "--estimator ml: maximum likelihood has no online step; the online estimator is kalman (default) or paper (the windows are identified with the setup's [estimator] kind)"
+                ),
                 _ => EstimatorKind::Kalman,
             };
             o.refit_every = refit_every;
