@@ -49,11 +49,18 @@ pub enum AppError {
     },
     #[error("{msg}")]
     Pipeline { msg: String },
-    #[error("{path}: only {samples} usable samples before: {cause}")]
+    /// Fewer samples than identification needs: how many were read and, when the input
+    /// ended early, why (the read error, or the damage of a truncated file), so that a short
+    /// recording is not mistaken for an empty one.
+    #[error(
+        "{path}: only {samples} usable samples were read (identification needs at least {needed}){}",
+        cause.as_deref().map(|c| format!(": {c}")).unwrap_or_default()
+    )]
     TooLittleData {
         path: PathBuf,
         samples: usize,
-        cause: String,
+        needed: usize,
+        cause: Option<String>,
     },
     #[error(transparent)]
     Report(#[from] crate::report::ReportError),
