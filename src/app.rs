@@ -227,7 +227,8 @@ pub struct ReplayRequest {
     pub out: Option<PathBuf>,
     /// Tracking: forgetting factor per sample (overrides the setup's `estimator.forgetting`).
     pub forgetting: Option<f64>,
-    /// Tracking: solve interval in samples (overrides `estimator.track_every`).
+    /// Tracking: solve interval in samples (overrides `estimator.track_every`); 0: automatic
+    /// (`TrackOptions::default_every`).
     pub track_every: Option<usize>,
     /// Switch the output-error refinement of the Kalman pipeline off (`--no-refine`).
     pub no_refine: bool,

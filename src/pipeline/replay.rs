@@ -353,6 +353,35 @@ fn identify_windows_stage(
     })
 }
 
+/// The note for tracking asked for (by option, else by the setup's keys) that the answer
+/// does not have: the track comes from the residual-force passes, and an answer without
+/// them (maximum likelihood fits the whole record at once) has none, which `"track": null`
+/// alone does not explain. As the `--bootstrap` note does for its option.
+fn tracking_not_run(req: &ReplayRequest, setup: &Setup, estimator: &str) -> Option<String> {
+    let keys = &setup.estimator;
+    let asked: Vec<&str> = [
+        (req.forgetting.is_some(), "`--forgetting`"),
+        (
+            req.forgetting.is_none() && keys.forgetting < 1.0,
+            "`estimator.forgetting`",
+        ),
+        (req.track_every.is_some(), "`--track-every`"),
+        (
+            req.track_every.is_none() && keys.track_every > 0,
+            "`estimator.track_every`",
+        ),
+    ]
+    .into_iter()
+    .filter_map(|(asked, name)| asked.then_some(name))
+    .collect();
+    (!asked.is_empty()).then(|| {
+        format!(
+            "{} not run: the parameter track comes from the residual-force passes (`--estimator kalman` or `paper`), and the `{estimator}` estimator's answer has none",
+            asked.join(" and ")
+        )
+    })
+}
+
 /// The setup a replay uses: `--setup` if given, else the attached one; the channel names
 /// must match the recording's.
 pub(crate) fn replay_setup(
@@ -495,10 +524,15 @@ pub fn run(
         s.and(a).and(r)
     });
     let stage = stage.map_err(|msg| AppError::Pipeline { msg })??;
-    let identification = stage.identification.map_err(|source| AppError::Identify {
+    let mut identification = stage.identification.map_err(|source| AppError::Identify {
         path: path.clone(),
         source,
     })?;
+    if identification.track.is_none() {
+        identification
+            .notes
+            .extend(tracking_not_run(req, &setup, &identification.estimator));
+    }
     // The outputs of the last *reported* pass: if a later pass failed half-way its samples
     // are dropped, the reported pass's are kept.
     if let Some(last) = identification.passes.last()
