@@ -133,7 +133,9 @@ enum Command {
         /// 1/(1 − λ) samples; default: the setup's estimator.forgetting).
         #[arg(long)]
         forgetting: Option<f64>,
-        /// Solve the tracked fit every N samples (default: a quarter of the memory).
+        /// Solve the tracked fit every N samples (default: the setup's estimator.track_every);
+        /// 0 = automatic: a quarter of the memory when forgetting, else a twentieth of the
+        /// record.
         #[arg(long)]
         track_every: Option<usize>,
         /// Print one JSON object instead of the table.

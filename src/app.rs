@@ -49,11 +49,18 @@ pub enum AppError {
     },
     #[error("{msg}")]
     Pipeline { msg: String },
-    #[error("{path}: only {samples} usable samples before: {cause}")]
+    /// Fewer samples than identification needs: how many were read and, when the input
+    /// ended early, why (the read error, or the damage of a truncated file), so that a short
+    /// recording is not mistaken for an empty one.
+    #[error(
+        "{path}: only {samples} usable samples were read (identification needs at least {needed}){}",
+        cause.as_deref().map(|c| format!(": {c}")).unwrap_or_default()
+    )]
     TooLittleData {
         path: PathBuf,
         samples: usize,
-        cause: String,
+        needed: usize,
+        cause: Option<String>,
     },
     #[error(transparent)]
     Report(#[from] crate::report::ReportError),
@@ -220,7 +227,8 @@ pub struct ReplayRequest {
     pub out: Option<PathBuf>,
     /// Tracking: forgetting factor per sample (overrides the setup's `estimator.forgetting`).
     pub forgetting: Option<f64>,
-    /// Tracking: solve interval in samples (overrides `estimator.track_every`).
+    /// Tracking: solve interval in samples (overrides `estimator.track_every`); 0: automatic
+    /// (`TrackOptions::default_every`).
     pub track_every: Option<usize>,
     /// Switch the output-error refinement of the Kalman pipeline off (`--no-refine`).
     pub no_refine: bool,

@@ -1018,6 +1018,9 @@ fn starts_at_rest(setup: &Setup, data: &TestData, sigma: &[f64]) -> Result<(), I
     Ok(())
 }
 
+/// Fewest samples [`identify`] accepts ([`IdentifyError::TooShort`] below).
+pub const MIN_SAMPLES: usize = 3;
+
 /// Run the identification (Steps I–VI) over recorded data.
 ///
 /// `on_pass` is told about each finished pass (for progress and per-pass outputs);
@@ -1059,7 +1062,7 @@ fn identify_once(
     on_pass: &mut dyn FnMut(&PassReport),
     on_sample: &mut dyn FnMut(usize, &StepOutput),
 ) -> Result<Identification, IdentifyError> {
-    if data.len() < 3 {
+    if data.len() < MIN_SAMPLES {
         return Err(IdentifyError::TooShort(data.len()));
     }
     let model = Model::for_identification(setup)?;

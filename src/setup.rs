@@ -843,11 +843,35 @@ impl Setup {
     }
 }
 
+/// The key the value of `model.{what}[i]` was written under: `k`, `c` and `value` are all
+/// accepted (serde aliases, which do not say which one was read), and a message should name
+/// the one the user wrote. Read from the text again, on the error path only.
+fn link_value_key(text: &str, what: &str, i: usize) -> &'static str {
+    let table: toml::Table = toml::from_str(text).unwrap_or_default();
+    let link = table
+        .get("model")
+        .and_then(|m| m.get(what))
+        .and_then(|l| l.get(i));
+    ["k", "c", "value"]
+        .into_iter()
+        .find(|k| link.is_some_and(|l| l.get(k).is_some()))
+        .unwrap_or("value")
+}
+
 fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupError> {
     let bad = |key: String, message: String| SetupError::Invalid {
         origin: origin.to_string(),
         key,
         message,
+    };
+    // A number that must be finite and ≥ 0: one wording, naming the key and the value read
+    // (a NaN fails every comparison, so "must be ≥ 0" alone would not say what was wrong).
+    let non_negative = |key: String, v: f64| -> Result<(), SetupError> {
+        if v.is_finite() && v >= 0.0 {
+            Ok(())
+        } else {
+            Err(bad(key, format!("must be ≥ 0, got {v}")))
+        }
     };
     let m = &raw.model;
     let external = match &m.matrix_market {
@@ -897,7 +921,10 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
     }
     for (i, n) in m.nodes.iter().enumerate() {
         if !n.x.is_finite() {
-            return Err(bad(format!("model.nodes[{i}].x"), "must be finite".into()));
+            return Err(bad(
+                format!("model.nodes[{i}].x"),
+                format!("must be finite, got {}", n.x),
+            ));
         }
         if !node_ids.insert(n.id) {
             return Err(bad(
@@ -948,12 +975,7 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
         if !(b.ei.is_finite() && b.ei > 0.0) {
             return Err(bad(key("ei"), format!("must be positive, got {}", b.ei)));
         }
-        if !(b.mass_per_length.is_finite() && b.mass_per_length >= 0.0) {
-            return Err(bad(
-                key("mass_per_length"),
-                format!("must be ≥ 0, got {}", b.mass_per_length),
-            ));
-        }
+        non_negative(key("mass_per_length"), b.mass_per_length)?;
     }
     let xs: BTreeMap<u32, f64> = m.nodes.iter().map(|n| (n.id, n.x)).collect();
     for (i, b) in m.beams.iter().enumerate() {
@@ -973,12 +995,8 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
     };
     for (i, ms) in m.masses.iter().enumerate() {
         check_node(format!("model.masses[{i}].node"), ms.node)?;
-        if !(ms.mass >= 0.0 && ms.inertia >= 0.0 && ms.mass.is_finite() && ms.inertia.is_finite()) {
-            return Err(bad(
-                format!("model.masses[{i}]"),
-                "mass and inertia must be ≥ 0".into(),
-            ));
-        }
+        non_negative(format!("model.masses[{i}].mass"), ms.mass)?;
+        non_negative(format!("model.masses[{i}].inertia"), ms.inertia)?;
     }
     for (what, links) in [("springs", &m.springs), ("dashpots", &m.dashpots)] {
         for (i, l) in links.iter().enumerate() {
@@ -992,8 +1010,9 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
                 _ => return Err(bad(key, "give exactly one of `dof` or `between`".into())),
             }
             if !(l.value.is_finite() && l.value >= 0.0) {
+                let written = link_value_key(text, what, i);
                 return Err(bad(
-                    format!("{key}.value"),
+                    format!("{key}.{written}"),
                     format!("must be ≥ 0, got {}", l.value),
                 ));
             }
@@ -1005,13 +1024,9 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
     for (i, s) in m.supports.iter().enumerate() {
         check_node(format!("model.supports[{i}].node"), s.node)?;
     }
-    if let Some(r) = &m.rayleigh
-        && !(r.alpha >= 0.0 && r.beta >= 0.0 && r.alpha.is_finite() && r.beta.is_finite())
-    {
-        return Err(bad(
-            "model.rayleigh".into(),
-            "alpha and beta must be ≥ 0".into(),
-        ));
+    if let Some(r) = &m.rayleigh {
+        non_negative("model.rayleigh.alpha".into(), r.alpha)?;
+        non_negative("model.rayleigh.beta".into(), r.beta)?;
     }
 
     let hinge_set: BTreeSet<u32> = m.hinges.iter().copied().collect();
@@ -1164,11 +1179,11 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
         } else {
             Some(c.truth.clone())
         };
-        for (j, v) in initial.iter().chain(truth.iter().flatten()).enumerate() {
-            if !v.is_finite() {
+        for (field, values) in [("initial", &c.initial), ("truth", &c.truth)] {
+            if let Some((j, v)) = values.iter().enumerate().find(|(_, v)| !v.is_finite()) {
                 return Err(bad(
-                    format!("connections[{i}]"),
-                    format!("value {j} is not finite"),
+                    key(&format!("{field}[{j}]")),
+                    format!("must be finite, got {v}"),
                 ));
             }
         }
@@ -1331,6 +1346,62 @@ dt_s = 0.01
             let e = Setup::from_toml(&text, "tiny").unwrap_err().to_string();
             assert!(e.contains(&format!("estimator.{key}")), "{key}: {e}");
         }
+    }
+
+    /// A NaN is reported at the key and element the user wrote, with the value read (the
+    /// reviewer's cases: `connections[0]: value 2 is not finite` for `truth[0]`, a spring's
+    /// `k` reported as `value`, a NaN mass as "must be ≥ 0" alone).
+    #[test]
+    fn non_finite_numbers_name_the_key_as_written_and_the_value() {
+        let cases = [
+            (
+                "basis = [\"u\", \"v\"]",
+                "basis = [\"u\", \"v\"]\ntruth = [nan, 4.0]",
+                "connections[0].truth[0]: must be finite, got NaN",
+            ),
+            (
+                "basis = [\"u\", \"v\"]",
+                "basis = [\"u\", \"v\"]\ninitial = [1.0, inf]",
+                "connections[0].initial[1]: must be finite, got inf",
+            ),
+            (
+                "k = 100.0",
+                "k = nan",
+                "model.springs[0].k: must be ≥ 0, got NaN",
+            ),
+            (
+                "k = 100.0",
+                "value = -1.0",
+                "model.springs[0].value: must be ≥ 0, got -1",
+            ),
+            (
+                "mass = 2.0",
+                "mass = nan",
+                "model.masses[0].mass: must be ≥ 0, got NaN",
+            ),
+            (
+                "mass = 2.0",
+                "mass = 2.0, inertia = -inf",
+                "model.masses[0].inertia: must be ≥ 0, got -inf",
+            ),
+            (
+                "x = 0.0",
+                "x = nan",
+                "model.nodes[0].x: must be finite, got NaN",
+            ),
+        ];
+        for (from, to, want) in cases {
+            let e = Setup::from_toml(&TINY.replace(from, to), "tiny")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(want), "{to}: {e}");
+        }
+        let rayleigh = format!("{TINY}[model.rayleigh]\nbeta = nan\n");
+        let e = Setup::from_toml(&rayleigh, "tiny").unwrap_err().to_string();
+        assert!(
+            e.contains("model.rayleigh.beta: must be ≥ 0, got NaN"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -1654,7 +1654,7 @@ pub fn simulate(setup: &Setup, opts: &SimulateOptions) -> Result<Simulated, Simu
     }
     if !(opts.dt_s.is_finite() && opts.dt_s > 0.0) {
         return Err(SimulateError::Options(format!(
-            "--dt must be > 0, got {}",
+            "--dt must be finite and > 0 s, got {}",
             opts.dt_s
         )));
     }
@@ -1670,6 +1670,31 @@ pub fn simulate(setup: &Setup, opts: &SimulateOptions) -> Result<Simulated, Simu
         return Err(SimulateError::Options(format!(
             "--pulse must be > 0 s, got {pulse_s}"
         )));
+    }
+    // A force or frequency that is not finite (or a negative RMS) would otherwise show as
+    // "the simulation diverged at sample 1", which names no option. A negative amplitude
+    // of a sine or an impact is a force the other way, and allowed.
+    match opts.scenario {
+        Scenario::Sine { amplitude, .. } | Scenario::Free { amplitude, .. }
+            if !amplitude.is_finite() =>
+        {
+            return Err(SimulateError::Options(format!(
+                "--amplitude must be a finite force in N, got {amplitude}"
+            )));
+        }
+        Scenario::Random { rms } | Scenario::RandomStiffnessDrop { rms, .. }
+            if !(rms.is_finite() && rms >= 0.0) =>
+        {
+            return Err(SimulateError::Options(format!(
+                "--amplitude is the random force's RMS: must be finite and ≥ 0 N, got {rms}"
+            )));
+        }
+        Scenario::Sine { freq_hz, .. } if !(freq_hz.is_finite() && freq_hz > 0.0) => {
+            return Err(SimulateError::Options(format!(
+                "--freq must be finite and > 0 Hz, got {freq_hz}"
+            )));
+        }
+        _ => {}
     }
     let model = Model::assemble(setup)?;
     let h = opts.dt_s / opts.substeps as f64;
@@ -2158,6 +2183,62 @@ dt_s = 0.001
                 other => panic!("pulse {pulse_s}: {:?}", other.map(|_| ())),
             }
         }
+    }
+
+    /// A force or frequency that is not finite, or a negative RMS, is refused naming the
+    /// option (it was "the simulation diverged at sample 1").
+    #[test]
+    fn a_force_or_frequency_that_makes_no_sense_is_refused_by_name() {
+        let s = Setup::from_toml(FRICTION_SDOF, "t").unwrap();
+        let sine = |amplitude, freq_hz| Scenario::Sine { freq_hz, amplitude };
+        let opts = |scenario, dt_s| SimulateOptions {
+            scenario,
+            steps: 10,
+            dt_s,
+            substeps: 1,
+            noise: Noise::None,
+            seed: 1,
+        };
+        let cases = [
+            (
+                opts(sine(f64::NAN, 5.0), 1e-3),
+                "--amplitude must be a finite force in N, got NaN",
+            ),
+            (
+                opts(sine(20.0, f64::NAN), 1e-3),
+                "--freq must be finite and > 0 Hz, got NaN",
+            ),
+            (
+                opts(sine(20.0, -5.0), 1e-3),
+                "--freq must be finite and > 0 Hz, got -5",
+            ),
+            (
+                opts(sine(20.0, 5.0), f64::INFINITY),
+                "--dt must be finite and > 0 s, got inf",
+            ),
+            (
+                opts(
+                    Scenario::Free {
+                        amplitude: f64::INFINITY,
+                        pulse_s: 1e-3,
+                    },
+                    1e-3,
+                ),
+                "--amplitude must be a finite force in N, got inf",
+            ),
+            (
+                opts(Scenario::Random { rms: -1.0 }, 1e-3),
+                "--amplitude is the random force's RMS: must be finite and ≥ 0 N, got -1",
+            ),
+        ];
+        for (o, want) in cases {
+            match simulate(&s, &o) {
+                Err(SimulateError::Options(m)) => assert_eq!(m, want),
+                other => panic!("{o:?}: {:?}", other.map(|_| ())),
+            }
+        }
+        // A sine the other way round is a force, not an error.
+        assert!(simulate(&s, &opts(sine(-20.0, 5.0), 1e-3)).is_ok());
     }
 
     #[test]

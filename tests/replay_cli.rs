@@ -395,6 +395,52 @@ fn a_truncated_recording_is_replayed_up_to_the_damage_with_a_warning() {
     check_recovery(&v, 1e-6, "truncated");
 }
 
+/// Too few samples say how many were read and how many are needed, and a truncated file
+/// says it is damaged (it said "the recording is empty" for 0 samples of a cut file and
+/// for 2 samples alike, and "no channel for topic" for a file cut before its channels).
+#[test]
+fn too_few_samples_say_how_many_and_whether_the_file_is_damaged() {
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = std::fs::read(repo("recordings/two-beam-friction.mcap")).unwrap();
+    let fails = |args: &[&str]| {
+        let out = run(args);
+        assert!(!out.status.success(), "{args:?} succeeded");
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let cut = dir.path().join("cut5000.mcap");
+    std::fs::write(&cut, &bytes[..5000]).unwrap();
+    let err = fails(&["replay", cut.to_str().unwrap()]);
+    assert!(
+        err.contains("only 0 usable samples were read (identification needs at least 3): the recording is damaged (truncated at byte")
+            && !err.contains("empty"),
+        "{err}"
+    );
+    let cut = dir.path().join("cut3000.mcap");
+    std::fs::write(&cut, &bytes[..3000]).unwrap();
+    let err = fails(&["replay", cut.to_str().unwrap()]);
+    assert!(
+        err.contains("no channel for topic /jointid/excitation: the recording is damaged, truncated before it at byte")
+            && err.contains(" of 3000 ("),
+        "{err}"
+    );
+    let two = dir.path().join("two.mcap");
+    let setup = repo("recordings/two-beam-friction.toml");
+    ok(&[
+        "simulate",
+        setup.to_str().unwrap(),
+        "--out",
+        two.to_str().unwrap(),
+        "--steps",
+        "2",
+    ]);
+    let err = fails(&["replay", two.to_str().unwrap()]);
+    assert!(
+        err.trim_end()
+            .ends_with("only 2 usable samples were read (identification needs at least 3)"),
+        "{err}"
+    );
+}
+
 #[test]
 fn bad_setup_names_the_key() {
     let dir = tempfile::tempdir().unwrap();

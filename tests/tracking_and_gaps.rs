@@ -197,3 +197,41 @@ fn a_bad_forgetting_factor_is_an_error_naming_where_it_came_from() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("estimator.forgetting"), "{err}");
 }
+
+/// Tracking asked for under an estimator that does not track (maximum likelihood) says so
+/// in a note, as `--bootstrap` does (it was a silent `"track": null`); `--track-every 0`
+/// is documented as automatic.
+#[test]
+fn tracking_options_the_answer_cannot_use_are_noted() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let rec = dir.path().join("bolt.mcap");
+    simulate(
+        "recordings/two-beam-bolt.toml",
+        &rec,
+        "random",
+        "2000",
+        "1",
+        "additive:0.01",
+    );
+    let r = rec.to_str().expect("utf-8");
+    let v = replay_json(&[
+        r,
+        "--estimator",
+        "ml",
+        "--forgetting",
+        "0.99",
+        "--track-every",
+        "10",
+    ]);
+    assert!(v["track"].is_null(), "{v}");
+    let notes = v["notes"].to_string();
+    assert!(
+        notes.contains("`--forgetting` and `--track-every` not run: the parameter track comes from the residual-force passes"),
+        "{notes}"
+    );
+    // No tracking asked for, no note.
+    let v = replay_json(&[r, "--estimator", "ml"]);
+    assert!(!v["notes"].to_string().contains("not run"), "{v}");
+    let help = ok(&["replay", "--help"]);
+    assert!(help.contains("0 = automatic"), "{help}");
+}

@@ -236,8 +236,17 @@ pub enum McapIoError {
         saved: u32,
         calculated: u32,
     },
-    #[error("{path}: no channel for topic {topic}")]
-    MissingTopic { path: PathBuf, topic: String },
+    /// `truncated`: where the file stops, when it was cut short before the channel (then
+    /// the topic is not missing from the recording, the file is damaged).
+    #[error(
+        "{path}: no channel for topic {topic}{}",
+        truncated.as_deref().map(|t| format!(": the recording is damaged, truncated before it at {t}")).unwrap_or_default()
+    )]
+    MissingTopic {
+        path: PathBuf,
+        topic: String,
+        truncated: Option<String>,
+    },
     #[error(
         "{path}: topic {topic} has message encoding {encoding:?}; expected \"json\" or \"jointid.frame.v1\""
     )]
@@ -1117,7 +1126,8 @@ fn read_header(path: &Path) -> Result<RecordingHeader, McapIoError> {
     let mut truth = BTreeMap::new();
     let mut facts = BTreeMap::new();
     let mut inputs: [Option<InputChannel>; 2] = [None, None];
-    loop {
+    // Where the file stops, if it is cut short (`None`: a complete file).
+    let truncation = loop {
         let need_channels = inputs.iter().any(Option::is_none);
         let records = match walker.next(!need_channels)? {
             Top::Record {
@@ -1127,7 +1137,7 @@ fn read_header(path: &Path) -> Result<RecordingHeader, McapIoError> {
             } => read_records(path, offset, opcode, &bytes)?,
             Top::PartialChunk { bytes } if need_channels => salvage_partial_chunk(&bytes),
             Top::PartialChunk { .. } | Top::SkippedChunk => continue,
-            Top::End(_) => break,
+            Top::End(t) => break t,
         };
         for record in records {
             match record {
@@ -1159,11 +1169,14 @@ fn read_header(path: &Path) -> Result<RecordingHeader, McapIoError> {
                 _ => {}
             }
         }
-    }
+    };
     let [excitation, response] = inputs;
     let missing = |topic: InputTopic| McapIoError::MissingTopic {
         path: path.to_path_buf(),
         topic: topic.topic().to_string(),
+        truncated: truncation
+            .as_ref()
+            .map(|t| format!("byte {} of {} ({})", t.at, t.file_len, t.what)),
     };
     let excitation = excitation.ok_or_else(|| missing(InputTopic::Excitation))?;
     let response = response.ok_or_else(|| missing(InputTopic::Response))?;
@@ -2171,11 +2184,18 @@ mod tests {
             let path = dir.path().join(format!("cut{cut}.mcap"));
             fs::write(&path, &bytes[..cut as usize]).unwrap();
             let rec = match read_recording(&path) {
-                Err(McapIoError::MissingTopic { .. }) => {
-                    // Only before the end of the first chunk, which holds just the channels.
+                Err(e @ McapIoError::MissingTopic { .. }) => {
+                    // Only before the end of the first chunk, which holds just the channels;
+                    // and the message says the file is cut, not that the topic is absent.
                     assert!(
                         cut < chunks[0].chunk_start_offset + chunks[0].chunk_length,
                         "cut {cut}"
+                    );
+                    let text = e.to_string();
+                    assert!(
+                        text.contains("damaged, truncated before it at byte")
+                            && text.contains(&format!(" of {cut} (")),
+                        "cut {cut}: {text}"
                     );
                     continue;
                 }
@@ -2583,8 +2603,12 @@ mod tests {
         drop(w);
         let err = read_recording(&path).unwrap_err();
         assert!(
-            matches!(&err, McapIoError::MissingTopic { topic, .. } if topic == RESPONSE_TOPIC),
+            matches!(&err, McapIoError::MissingTopic { topic, truncated: None, .. } if topic == RESPONSE_TOPIC),
             "{err}"
+        );
+        assert!(
+            !err.to_string().contains("damaged"),
+            "a complete file: {err}"
         );
 
         let path = dir.path().join("truth.mcap");

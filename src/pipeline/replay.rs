@@ -28,7 +28,7 @@ use crate::app::{
 };
 use crate::estimate::StepOutput;
 use crate::identify::{
-    Identification, IdentifyError, IdentifyOptions, PassReport, TestData, identify,
+    Identification, IdentifyError, IdentifyOptions, MIN_SAMPLES, PassReport, TestData, identify,
 };
 use crate::io::mcap::{FrameStream, RecordingHeader, stream_frames};
 use crate::setup::EstimatorKind;
@@ -109,6 +109,34 @@ fn fault_ends_input(
     }
 }
 
+/// The error for an input with fewer samples than identification needs: how many were read
+/// and why the input ended early, if it did: the read error, else `damage`, the reader's
+/// note on a truncated or damaged file (the only warning an MCAP source sends). Without
+/// either the recording is complete and that short.
+fn too_little_data(
+    path: &Path,
+    samples: usize,
+    input_error: Option<String>,
+    damage: Option<String>,
+) -> AppError {
+    let cause = match (input_error, damage) {
+        (Some(e), _) => Some(format!("the input ended at an error: {e}")),
+        (None, Some(d)) => {
+            // The note is worded for the warnings list, after the file's name.
+            let prefix = format!("{}: ", path.display());
+            let d = d.strip_prefix(&prefix).unwrap_or(&d);
+            Some(format!("the recording is damaged ({d})"))
+        }
+        (None, None) => None,
+    };
+    AppError::TooLittleData {
+        path: path.to_path_buf(),
+        samples,
+        needed: MIN_SAMPLES,
+        cause,
+    }
+}
+
 /// The identification stage: buffer, then identify (see the module docs). The input
 /// policy is the one replay always had: an input error ends the data there, the samples
 /// before it are identified, and a ragged end (one topic one frame longer) after a
@@ -157,6 +185,8 @@ fn identify_stage(
             }
         }
     }
+    // The warnings so far are the source's: the damage note of a truncated file.
+    let damage = input_warnings.first().cloned();
     if let Some(AlignError::Gap { prev, got }) = fault {
         // Lost frames or a restarted acquisition in a live recording: the time stepping
         // cannot cross it, so the first segment is identified (a setup with windows, as
@@ -170,12 +200,8 @@ fn identify_stage(
     } else if let Some(e) = fault {
         fault_ends_input(e, &mut input_error, &input_warnings, path);
     }
-    if data.len() < 3 {
-        return Err(AppError::TooLittleData {
-            path: path.to_path_buf(),
-            samples: data.len(),
-            cause: input_error.unwrap_or_else(|| "the recording is empty".into()),
-        });
+    if data.len() < MIN_SAMPLES {
+        return Err(too_little_data(path, data.len(), input_error, damage));
     }
     let _ = tx.send(Msg::Data(StageOut::Start {
         samples: data.len(),
@@ -301,12 +327,9 @@ fn identify_windows_stage(
     session.report.windows_abandoned = collector.abandoned;
     if session.windows() == 0 {
         let partial = collector.take_partial();
-        if partial.len() < 3 {
-            return Err(AppError::TooLittleData {
-                path: path.to_path_buf(),
-                samples: partial.len(),
-                cause: input_error.unwrap_or_else(|| "the recording is empty".into()),
-            });
+        if partial.len() < MIN_SAMPLES {
+            let damage = input_warnings.first().cloned();
+            return Err(too_little_data(path, partial.len(), input_error, damage));
         }
         input_warnings.push(format!(
             "{}: {} samples, fewer than one window of {}: identified whole",
@@ -327,6 +350,35 @@ fn identify_windows_stage(
         input_warnings,
         input_error,
         identification,
+    })
+}
+
+/// The note for tracking asked for (by option, else by the setup's keys) that the answer
+/// does not have: the track comes from the residual-force passes, and an answer without
+/// them (maximum likelihood fits the whole record at once) has none, which `"track": null`
+/// alone does not explain. As the `--bootstrap` note does for its option.
+fn tracking_not_run(req: &ReplayRequest, setup: &Setup, estimator: &str) -> Option<String> {
+    let keys = &setup.estimator;
+    let asked: Vec<&str> = [
+        (req.forgetting.is_some(), "`--forgetting`"),
+        (
+            req.forgetting.is_none() && keys.forgetting < 1.0,
+            "`estimator.forgetting`",
+        ),
+        (req.track_every.is_some(), "`--track-every`"),
+        (
+            req.track_every.is_none() && keys.track_every > 0,
+            "`estimator.track_every`",
+        ),
+    ]
+    .into_iter()
+    .filter_map(|(asked, name)| asked.then_some(name))
+    .collect();
+    (!asked.is_empty()).then(|| {
+        format!(
+            "{} not run: the parameter track comes from the residual-force passes (`--estimator kalman` or `paper`), and the `{estimator}` estimator's answer has none",
+            asked.join(" and ")
+        )
     })
 }
 
@@ -472,10 +524,15 @@ pub fn run(
         s.and(a).and(r)
     });
     let stage = stage.map_err(|msg| AppError::Pipeline { msg })??;
-    let identification = stage.identification.map_err(|source| AppError::Identify {
+    let mut identification = stage.identification.map_err(|source| AppError::Identify {
         path: path.clone(),
         source,
     })?;
+    if identification.track.is_none() {
+        identification
+            .notes
+            .extend(tracking_not_run(req, &setup, &identification.estimator));
+    }
     // The outputs of the last *reported* pass: if a later pass failed half-way its samples
     // are dropped, the reported pass's are kept.
     if let Some(last) = identification.passes.last()
