@@ -1146,3 +1146,44 @@ fn an_unrefined_answer_that_misfits_the_record_is_flagged_and_refused_under_stri
         String::from_utf8_lossy(&out.stderr)
     );
 }
+
+/// `jointid live --estimator ml` was run as the Kalman filter without a word; maximum
+/// likelihood has no online step, so it is refused, saying why, before any stream is opened
+/// (a live run that started instead would wait for frames: it is killed after 30 s and the
+/// test fails).
+#[test]
+fn live_refuses_an_estimator_without_an_online_step() {
+    use std::process::{Command, Stdio};
+    let setup = repo("recordings/two-beam-spring.toml");
+    let mut child = Command::new(common::BIN)
+        .args([
+            "live",
+            "--setup",
+            setup.to_str().unwrap(),
+            "--estimator",
+            "ml",
+            "--prefix",
+            "jointid_test_live_ml_refused",
+            "--seconds",
+            "1",
+        ])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("run jointid live");
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
+    while child.try_wait().expect("wait").is_none() {
+        if std::time::Instant::now() > deadline {
+            let _ = child.kill();
+            panic!("`live --estimator ml` started a session instead of refusing");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let out = child.wait_with_output().expect("output");
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("--estimator ml") && err.contains("no online step"),
+        "{err}"
+    );
+}
