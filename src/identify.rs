@@ -1711,6 +1711,13 @@ fn finish_with_output_error(
                         .collect::<Vec<_>>()
                         .join(", ")
                 ));
+                if let Some(steps) = rep.whole_record_steps {
+                    result.notes.push(format!(
+                        "long record: the prediction error descended on its first {} samples, then took {steps} Gauss–Newton step(s) on the whole record from there (the one-step estimator; the last step, under {} errors, added without a run)",
+                        crate::estimate::prediction_error::DESCENT_PREFIX_SAMPLES,
+                        crate::estimate::prediction_error::ONE_STEP_TOL
+                    ));
+                }
                 if let Some(shift) = rep.noise_shift.as_ref() {
                     result
                         .notes

@@ -356,6 +356,10 @@ fn a_long_record_of_finely_integrated_data_is_refined_at_its_level() {
         id.notes
     );
     assert_eq!(prediction_error_report(&id).substeps, 64, "{:?}", id.notes);
+    // The whole record refined by the one-step round from the prefix's answer (not handed
+    // back to the damped descent): `prediction_error::ONE_STEP_ITER`.
+    let steps = prediction_error_report(&id).whole_record_steps;
+    assert!(matches!(steps, Some(1..=4)), "{steps:?} {:?}", id.notes);
     assert_every_parameter_within(&id, 2.0, "50,000 samples, 64 sub-steps, 1 %, seed 1");
 }
 
@@ -372,6 +376,9 @@ fn a_whole_round_far_from_the_prefix_is_run_again_with_the_observer_rebuilt() {
     let setup = Setup::from_file(&path).unwrap();
     let id = run(&setup, 50_000, 8, Noise::Additive(1.0), 1);
     assert!(id.failure.is_none(), "{:?}", id.failure);
+    // Not the one-step round (`prediction_error::ONE_STEP_ITER`): its first step reaches
+    // beyond what the prefix's errors explain and hands the record to the damped descent.
+    assert_eq!(prediction_error_report(&id).whole_record_steps, None);
     assert_every_parameter_within(&id, 2.0, "spring, 50,000 samples, 100 %, seed 1");
 }
 

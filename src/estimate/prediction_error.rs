@@ -423,8 +423,8 @@ const ERROR_SECANTS: [f64; 2] = [1.0, 8.0];
 
 /// Samples of the first descent round on a record longer than twice this: the
 /// Levenberg–Marquardt descent from the start values runs on the record's first samples,
-/// and the second round (the observer rebuilt at that point) descends on the whole record
-/// from there. Why: from the Kalman passes' values the descent needs several steps, each a
+/// and the second round (the observer rebuilt at that point) refines the whole record from
+/// there (since the twenty-second session by the one-step round, [`ONE_STEP_ITER`]). Why: from the Kalman passes' values the descent needs several steps, each a
 /// whole-record Jacobian (9 runs of the predictor) and its trials; on the prefix they cost
 /// a fraction, and the whole record then starts within about `√(N/10,000)` of its errors
 /// from its minimum, which a step or two reaches. The answer is still the whole record's
@@ -448,6 +448,32 @@ pub const DESCENT_PREFIX_SAMPLES: usize = 10_000;
 /// without the rebuilt round, +0.30 with it (+0.22 before the prefix).
 const PREFIX_REBUILD: f64 = 4.0;
 
+/// After a long record's prefix round, the whole record is refined by the polish's steps
+/// alone — secant Gauss–Newton on ±2-error secants ([`POLISH_SECANT`]) from the innovations'
+/// model averaged over the round's Jacobians ([`PolishModel`]) — instead of a damped descent
+/// followed by the polish, and stops at a looser tolerance ([`ONE_STEP_TOL`]) with its last
+/// step added unrun. Why: the prefix's answer is within about `√(N/10,000)` whole-record
+/// errors of the whole record's minimum, a start from which one Gauss–Newton step is already
+/// as precise as the minimiser to first order (the one-step estimator: Le Cam 1956; Lehmann
+/// & Casella, *Theory of Point Estimation*, §6.4); the damped descent's cost test is what a
+/// rough cost defeats (it refused up to 6 damped trials in a row on the 100,000-sample
+/// record of BENCHMARKS.md before the polish took over). At most [`ONE_STEP_ITER`] steps;
+/// a first step beyond what the prefix's own errors explain ([`PREFIX_REBUILD`]) hands the
+/// record back to the damped descent. Measured against the damped descent (ACCURACY.md,
+/// twenty-second session): whole-record runs of the predictor 40–50 → 25–34; on 25,000-sample
+/// records of continuous data every parameter within 0.3 errors of the former answer; on
+/// data of the model's own discretisation (the rough cost) ±1-error secants here moved
+/// answers by up to 1.8 errors, ±2-error ones (the polish's) by up to 0.25 where no
+/// bootstrap ran.
+const ONE_STEP_ITER: usize = 4;
+
+/// The Gauss–Newton step (in naive errors) under which the whole record's one-step round
+/// ([`ONE_STEP_ITER`]) ends: well within its secants' ±2 errors, where their linear model of
+/// the innovations holds. The polish's own tolerance (0.05) gave the same coverage on data of
+/// the model's own discretisation (97–100 % against 97 %, 8 seeds per row) at 1.3–1.6× the
+/// time.
+pub const ONE_STEP_TOL: f64 = 0.5;
+
 /// What the prediction-error refinement did (reported in the identification's
 /// output-error report).
 #[derive(Debug, Clone, serde::Serialize)]
@@ -464,6 +490,10 @@ pub struct PredictionErrorReport {
     /// and at the end (the whole record).
     pub cost_start: f64,
     pub cost_end: f64,
+    /// A long record refined by the one-step round after its prefix ([`ONE_STEP_ITER`]):
+    /// the whole record's Gauss–Newton steps it took; `None` for a short record, or a long
+    /// one whose prefix did not represent it (the damped descent ran on the whole record).
+    pub whole_record_steps: Option<usize>,
     /// Newey–West lag window of the sandwich standard errors, samples.
     pub hac_lag: usize,
     /// Stated (sandwich, the larger over [`ERROR_SECANTS`]) standard error over the naive
@@ -889,10 +919,136 @@ pub const FLAT_BOUND_LR: f64 = 3.84;
 /// the other parameters' errors through the sandwich.
 const MIN_SECANT_OF_START: f64 = 1e-3;
 
+/// How a whole record's one-step round ([`one_step_round`]) ended.
+enum OneStep {
+    /// A step under [`ONE_STEP_TOL`] naive errors: the last Jacobian (a ±2-error secant),
+    /// the point it was made at, and the answer (that point plus the step, unrun).
+    Settled {
+        jac: Jac,
+        at: Vec<f64>,
+        answer: Vec<f64>,
+        steps: usize,
+    },
+    /// The first step reached beyond what the prefix's own errors explain, or the steps did
+    /// not settle: the prefix did not represent the record, and the damped descent goes on
+    /// from `at` (the last point run).
+    Unsettled { at: Vec<f64> },
+}
+
+/// The whole record's Gauss–Newton steps after a long record's prefix round (see
+/// [`ONE_STEP_ITER`]): from `start`, the ±2-error secant Jacobian (widths from `scales`,
+/// the expected naive errors), a step, and again while the step moved more than
+/// [`ONE_STEP_TOL`] naive errors. Steps are clipped to [`POLISH_TRUST`] errors, as the
+/// polish's. A first step beyond `representative` errors means the prefix's answer is not
+/// near the whole record's minimum (the one-step estimator's premise): the round stops at
+/// once.
+#[allow(clippy::too_many_arguments)]
+fn one_step_round(
+    setup: &Setup,
+    model: &Model,
+    basis: &[Basis],
+    start: &[f64],
+    scales: &[f64],
+    at_least: &dyn Fn(&[f64]) -> Vec<f64>,
+    pred: &Predictor,
+    excitation: &[Vec<f64>],
+    response: &[Vec<f64>],
+    substeps: usize,
+    representative: f64,
+    iterations: &mut usize,
+) -> Result<OneStep, SimulateError> {
+    let width = |naive: &[f64]| -> Vec<f64> {
+        at_least(naive)
+            .iter()
+            .map(|x| x * POLISH_SECANT / SECANT)
+            .collect()
+    };
+    let mut at = start.to_vec();
+    let mut jac = jacobian(
+        setup,
+        model,
+        basis,
+        &at,
+        &width(scales),
+        pred,
+        excitation,
+        response,
+        substeps,
+        None,
+    )?;
+    // The steps come from the innovations' model averaged over the round's Jacobians, as
+    // the polish's ([`PolishModel`]): on a rough cost (data of the model's own
+    // discretisation with friction) the innovations at one point are one draw of the
+    // roughness, and a step from them scattered the answer by up to 2 errors from the
+    // polish's (ACCURACY.md).
+    let mut averaged = PolishModel::new(&jac);
+    for step in 1..=ONE_STEP_ITER {
+        *iterations += 1;
+        let (F, g, centre) = averaged.normal();
+        let Some(inv) = scaled_inverse(&F) else { break };
+        let naive: Vec<f64> = (0..at.len()).map(|a| inv[(a, a)].max(0.0).sqrt()).collect();
+        let Some(dp) = bounded_step(&F, &g, &centre, basis) else {
+            break;
+        };
+        let target = feasible(
+            basis,
+            &centre
+                .iter()
+                .zip(dp.iter())
+                .map(|(a, b)| a + b)
+                .collect::<Vec<_>>(),
+        );
+        let worst = target
+            .iter()
+            .zip(&at)
+            .zip(&naive)
+            .map(|((t, a), b)| (t - a).abs() / b)
+            .fold(0.0, f64::max);
+        if !worst.is_finite() || (step == 1 && worst > representative) {
+            break;
+        }
+        if worst <= ONE_STEP_TOL {
+            return Ok(OneStep::Settled {
+                jac,
+                at,
+                answer: target,
+                steps: step,
+            });
+        }
+        if step == ONE_STEP_ITER {
+            break;
+        }
+        let shrink = (POLISH_TRUST / worst).min(1.0);
+        at = feasible(
+            basis,
+            &at.iter()
+                .zip(&target)
+                .map(|(a, t)| a + shrink * (t - a))
+                .collect::<Vec<_>>(),
+        );
+        jac = jacobian(
+            setup,
+            model,
+            basis,
+            &at,
+            &width(&naive),
+            pred,
+            excitation,
+            response,
+            substeps,
+            None,
+        )?;
+        averaged.add(&jac);
+    }
+    Ok(OneStep::Unsettled { at })
+}
+
 /// Levenberg–Marquardt on the innovation cost from `start` with the observer built at
 /// `start` (process-noise force `force_std` N per sample), at most `max_iter` Jacobians,
 /// then once more with the observer rebuilt at the result; standard errors by the sandwich.
-/// `scales` are the start's standard errors (the first secant widths).
+/// `scales` are the start's standard errors (the first secant widths). A record longer than
+/// twice [`DESCENT_PREFIX_SAMPLES`] descends on its prefix, then takes the one-step round on
+/// the whole record ([`ONE_STEP_ITER`]).
 #[allow(clippy::too_many_arguments)]
 pub fn refine(
     setup: &Setup,
@@ -930,9 +1086,15 @@ pub fn refine(
     // when the first moved. A long record's first round descends on its first
     // [`DESCENT_PREFIX_SAMPLES`] instead, and one whole round follows — a second only when
     // the first moved far beyond what the prefix's own errors explain (see there).
-    let mut on_prefix = excitation.len() > 2 * DESCENT_PREFIX_SAMPLES;
+    let record_len = excitation.len();
+    let mut on_prefix = record_len > 2 * DESCENT_PREFIX_SAMPLES;
     let mut whole_rounds_left = if on_prefix { 1 } else { 2 };
     let mut after_prefix = false;
+    // The whole round after a prefix is a one-step round ([`ONE_STEP_ITER`]); the point
+    // its last Jacobian was made at (where the error secants are made).
+    let mut one_step = on_prefix;
+    let mut secant_at: Option<Vec<f64>> = None;
+    let mut whole_record_steps = None;
     let (mut J, pred) = loop {
         let built_at = p.clone();
         let len = if on_prefix {
@@ -954,6 +1116,53 @@ pub fn refine(
             }
             // Then the parameters and the start state jointly (variable projection).
             pred.concentrate(excitation.len());
+        }
+        // Whole-record errors the prefix's answer may be off by (see [`PREFIX_REBUILD`]).
+        let representative = PREFIX_REBUILD * (len as f64 / DESCENT_PREFIX_SAMPLES as f64).sqrt();
+        let settled = if one_step && !on_prefix {
+            // Tried once: an unsettled round leaves the record to the damped descent, with
+            // the observer rebuilt as before when it moves far.
+            one_step = false;
+            match one_step_round(
+                setup,
+                model,
+                &basis,
+                &p,
+                &scales,
+                &at_least,
+                &pred,
+                excitation,
+                response,
+                substeps,
+                representative,
+                &mut iterations,
+            )? {
+                OneStep::Settled {
+                    jac,
+                    at,
+                    answer,
+                    steps,
+                } => {
+                    whole_record_steps = Some(steps);
+                    Some((jac, at, answer))
+                }
+                // The descent below goes on from the last point run.
+                OneStep::Unsettled { at } => {
+                    p = at;
+                    None
+                }
+            }
+        } else {
+            None
+        };
+        if let Some((J, at, answer)) = settled {
+            p = answer;
+            secant_at = Some(at);
+            whole_rounds_left -= 1;
+            if whole_rounds_left == 0 {
+                break (J, pred);
+            }
+            continue;
         }
         let mut J = jacobian(
             setup, model, &basis, &p, &scales, &pred, excitation, response, substeps, None,
@@ -1054,6 +1263,12 @@ pub fn refine(
         if on_prefix {
             on_prefix = false;
             after_prefix = true;
+            // The whole record's errors are about `√(10,000/N)` of the prefix's: the
+            // one-step round's first secant is ±1 of those.
+            if let Some((_, naive, _)) = sandwich(&J, m) {
+                let shrink = (len as f64 / record_len as f64).sqrt();
+                scales = at_least(&naive.iter().map(|x| x * shrink).collect::<Vec<_>>());
+            }
             continue;
         }
         whole_rounds_left -= 1;
@@ -1074,7 +1289,8 @@ pub fn refine(
     let mut averaged: Option<PolishModel> = None;
     // The point `J` was made at (`p` unless the averaged model's answer was never run).
     let mut evaluated = p.clone();
-    for step in 0..=POLISH_ITER {
+    // (A one-step round has no polish: its steps were the secant Gauss–Newton steps.)
+    for step in (0..=POLISH_ITER).take_while(|_| secant_at.is_none()) {
         let (F, g, centre) = match &averaged {
             Some(a) => a.normal(),
             None => {
@@ -1149,27 +1365,48 @@ pub fn refine(
             |k: f64| -> Vec<f64> { at_least(&naive).iter().map(|x| x * k / SECANT).collect() };
         // The averaged polish's answer has not been run yet: its base run is made here.
         let base = (evaluated == p).then(|| (J.r.clone(), J.cost));
-        match jacobian(
-            setup,
-            model,
-            &basis,
-            &p,
-            &width(ERROR_SECANTS[0]),
-            &pred,
-            excitation,
-            response,
-            substeps,
-            base,
-        ) {
-            Ok(J2) => J = J2,
-            // Without a run at the averaged answer, the last point run is the answer.
-            Err(_) => p = evaluated.clone(),
+        match secant_at.as_ref() {
+            // A one-step round's answer is its last step from `at`, under [`ONE_STEP_TOL`]
+            // errors away and not run: the error secants are made at `at`, on its run (a
+            // failure keeps the round's own ±2-error secant there).
+            Some(at) => {
+                if let Ok(J2) = jacobian(
+                    setup,
+                    model,
+                    &basis,
+                    at,
+                    &width(ERROR_SECANTS[0]),
+                    &pred,
+                    excitation,
+                    response,
+                    substeps,
+                    Some((J.r.clone(), J.cost)),
+                ) {
+                    J = J2;
+                }
+            }
+            None => match jacobian(
+                setup,
+                model,
+                &basis,
+                &p,
+                &width(ERROR_SECANTS[0]),
+                &pred,
+                excitation,
+                response,
+                substeps,
+                base,
+            ) {
+                Ok(J2) => J = J2,
+                // Without a run at the averaged answer, the last point run is the answer.
+                Err(_) => p = evaluated.clone(),
+            },
         }
         wide_jacobian = jacobian(
             setup,
             model,
             &basis,
-            &p,
+            secant_at.as_deref().unwrap_or(&p),
             &width(ERROR_SECANTS[1]),
             &pred,
             excitation,
@@ -1308,6 +1545,7 @@ pub fn refine(
             iterations,
             cost_start: cost_start.unwrap_or(f64::NAN),
             cost_end: J.cost / nobs,
+            whole_record_steps,
             hac_lag: lag,
             sandwich_ratio: se.iter().zip(&naive).map(|(a, b)| a / b).collect(),
             secant_disagreement,

@@ -881,6 +881,7 @@ mod tests {
                 iterations: 3,
                 cost_start: 0.97,
                 cost_end: 0.97,
+                whole_record_steps: None,
                 hac_lag: 6,
                 sandwich_ratio: vec![1.0, 1.0],
                 secant_disagreement: Some(1.0),
