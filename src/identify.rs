@@ -1639,7 +1639,8 @@ fn finish_with_output_error(
                 let rep = &r.report;
                 if let Some(gain) = rep.smooth_excitation_gain {
                     result.notes.push(format!(
-                        "the excitation was taken as smooth between samples (each sample's mean that of a cubic through its neighbours, not of the straight line): its innovation likelihood was higher by {gain:.1} at the start values; a force that is piecewise linear between samples would be the other way"
+                        "the excitation was taken as smooth between samples (each sample's mean that of a cubic through its neighbours, not of the straight line): its innovation likelihood was higher by {gain:.1} at the start values (over the first {} samples); a force that is piecewise linear between samples would be the other way",
+                        data.len().min(crate::identify::pem::FORCE_TUNE_SAMPLES)
                     ));
                 }
                 match rep.bootstrap.as_ref() {

@@ -55,7 +55,7 @@ const LEVEL_CHOICE_SAMPLES: usize = 2_000;
 /// force was 480× the force scale: 8.4e5 → 3.2e5 N, `v` +3.26 → +0.77 errors; a
 /// 100,000-sample record at 1 %: 1.5e4 → 4.0e3 N, errors halved, `sign(u)` −0.75 → −0.03
 /// errors (ACCURACY.md, fourteenth session).
-const FORCE_TUNE_SAMPLES: usize = 10_000;
+pub(crate) const FORCE_TUNE_SAMPLES: usize = 10_000;
 
 /// Range and grid of the observer's process-noise tuning, relative to the model's force
 /// scale (`kalman::force_scale_of`, 1.75e3 N on the two-beam model): 1e-2 … 1e3 of it,
@@ -422,38 +422,30 @@ pub(super) fn refine_by_prediction_error(
         .find(|t| t.2 >= best - significant)
         .unwrap_or((opts.substeps, 0.0, f64::NEG_INFINITY));
     // The chosen level's force, searched again near the coarse one on the first
-    // [`FORCE_TUNE_SAMPLES`] (see there), and the likelihood of the start values with it on
-    // the whole record (one more run when the search saw a prefix).
+    // [`FORCE_TUNE_SAMPLES`] (see there); with it the likelihood of the start values there.
     let force_prefix = data.prefix(FORCE_TUNE_SAMPLES);
+    let tune_data = force_prefix.as_ref().unwrap_or(data);
+    let initial = opts.initial_state.as_deref();
     let near = |level: usize, coarse_force: f64| {
         if tuned.iter().any(|t| t.0 == level) {
-            let initial = opts.initial_state.as_deref();
-            let (force, likelihood) = tune_pem_force(
+            tune_pem_force(
                 setup,
                 model,
-                force_prefix.as_ref().unwrap_or(data),
+                tune_data,
                 sigma,
                 start,
                 level,
                 initial,
                 ForceSearch::Near(coarse_force),
-            );
-            if force_prefix.is_some() {
-                let whole =
-                    pem_log_likelihood(setup, model, data, sigma, start, level, initial, force);
-                (force, whole)
-            } else {
-                (force, likelihood)
-            }
+            )
         } else {
             (coarse_force, f64::NEG_INFINITY)
         }
     };
     crate::par::phase("pem level choice", t0);
     let t0 = std::time::Instant::now();
-    let (mut force_std, kept_likelihood) = near(sub, force_std);
+    let (mut force_std, mut kept_likelihood) = near(sub, force_std);
     crate::par::phase("pem near force", t0);
-    let mut kept_likelihood = kept_likelihood;
     let mut sub = sub;
     // A long record: the level was kept on its prefix; the rule (the coarsest within 3
     // standard deviations of the likeliest) is checked again on the whole record, whose
@@ -466,31 +458,42 @@ pub(super) fn refine_by_prediction_error(
     // (ACCURACY.md, "Long records").
     if prefix.is_some() && likeliest.0 != sub {
         let whole_significant = 1.5 * (2.0 * (data.len() * sigma.len()) as f64).sqrt();
+        let whole = |level: usize, force: f64| {
+            pem_log_likelihood(setup, model, data, sigma, start, level, initial, force)
+        };
+        let kept_whole = whole(sub, force_std);
         let (force, likelihood) = near(likeliest.0, likeliest.1);
-        if likelihood > kept_likelihood + whole_significant {
+        if whole(likeliest.0, force) > kept_whole + whole_significant {
             (force_std, sub, kept_likelihood) = (force, likeliest.0, likelihood);
         }
     }
     // The excitation between samples: linear, or smooth (see [`moment_matched`]), the
     // likelier at the kept level and force — the same parameters, the same observer, so
-    // the plain comparison of the likelihoods (no penalty).
-    let smoothed = TestData {
-        excitation: moment_matched(&data.excitation),
-        ..data.clone()
-    };
+    // the plain comparison of the likelihoods (no penalty) — on the samples the force was
+    // tuned on: like the level, how the excitation varies between samples is a property of
+    // the acquisition, the same along the record. Why not the whole record: its two runs
+    // were 0.16 s of a 100,000-sample identification (BENCHMARKS.md, twenty-second session).
     let smooth_likelihood = pem_log_likelihood(
         setup,
         model,
-        &smoothed,
+        &TestData {
+            excitation: moment_matched(&tune_data.excitation),
+            ..tune_data.clone()
+        },
         sigma,
         start,
         sub,
-        opts.initial_state.as_deref(),
+        initial,
         force_std,
     );
     let smooth_gain = (smooth_likelihood > kept_likelihood && kept_likelihood.is_finite())
         .then_some(smooth_likelihood - kept_likelihood);
+    let smoothed;
     let data = if smooth_gain.is_some() {
+        smoothed = TestData {
+            excitation: moment_matched(&data.excitation),
+            ..data.clone()
+        };
         &smoothed
     } else {
         data
