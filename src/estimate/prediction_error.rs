@@ -957,6 +957,68 @@ pub const FLAT_BOUND_LR: f64 = 3.84;
 /// the other parameters' errors through the sandwich.
 const MIN_SECANT_OF_START: f64 = 1e-3;
 
+/// A Gauss–Newton step of a secant model of the innovations (`F = JᵀJ`, `g = Jᵀr` at
+/// `centre`), as the polish and the one-step round take it.
+struct ModelStep {
+    /// Where the model's minimum is (feasible; friction levels held by the active set,
+    /// [`active_set_step`] with its `crossing`).
+    target: Vec<f64>,
+    /// The naive errors `(JᵀJ)^{-1/2}` of the model.
+    naive: Vec<f64>,
+    /// The largest move from the point stepped from to `target`, in those errors.
+    worst: f64,
+}
+
+/// The step of [`ModelStep`] from `from`; `None` when the model (or its free block) is
+/// singular.
+fn model_step(
+    F: &DMatrix<f64>,
+    g: &DVector<f64>,
+    centre: &[f64],
+    from: &[f64],
+    basis: &[Basis],
+    crossing: bool,
+) -> Option<ModelStep> {
+    let inv = scaled_inverse(F)?;
+    let naive: Vec<f64> = (0..from.len())
+        .map(|a| inv[(a, a)].max(0.0).sqrt())
+        .collect();
+    let dp = active_set_step(F, g, centre, basis, crossing)?;
+    let target = feasible(
+        basis,
+        &centre
+            .iter()
+            .zip(dp.iter())
+            .map(|(a, b)| a + b)
+            .collect::<Vec<_>>(),
+    );
+    let worst = target
+        .iter()
+        .zip(from)
+        .zip(&naive)
+        .map(|((t, a), b)| (t - a).abs() / b)
+        .fold(0.0, f64::max);
+    Some(ModelStep {
+        target,
+        naive,
+        worst,
+    })
+}
+
+/// `from` moved toward `target`, the move clipped to [`POLISH_TRUST`] naive errors (`worst`:
+/// the whole move's size in them).
+fn clipped_move(basis: &[Basis], from: &[f64], target: &[f64], worst: f64) -> Vec<f64> {
+    let shrink = (POLISH_TRUST / worst).min(1.0);
+    feasible(
+        basis,
+        &from
+            .iter()
+            .zip(target)
+            .map(|(a, t)| a + shrink * (t - a))
+            .collect::<Vec<_>>(),
+    )
+}
+
 /// How a whole record's one-step round ([`one_step_round`]) ended.
 enum OneStep {
     /// A step under [`ONE_STEP_TOL`] naive errors: the last Jacobian (a ±2-error secant),
@@ -1023,25 +1085,14 @@ fn one_step_round(
     for step in 1..=ONE_STEP_ITER {
         *iterations += 1;
         let (F, g, centre) = averaged.normal();
-        let Some(inv) = scaled_inverse(&F) else { break };
-        let naive: Vec<f64> = (0..at.len()).map(|a| inv[(a, a)].max(0.0).sqrt()).collect();
-        let Some(dp) = active_set_step(&F, &g, &centre, basis, true) else {
+        let Some(ModelStep {
+            target,
+            naive,
+            worst,
+        }) = model_step(&F, &g, &centre, &at, basis, true)
+        else {
             break;
         };
-        let target = feasible(
-            basis,
-            &centre
-                .iter()
-                .zip(dp.iter())
-                .map(|(a, b)| a + b)
-                .collect::<Vec<_>>(),
-        );
-        let worst = target
-            .iter()
-            .zip(&at)
-            .zip(&naive)
-            .map(|((t, a), b)| (t - a).abs() / b)
-            .fold(0.0, f64::max);
         if !worst.is_finite() || (step == 1 && worst > representative) {
             break;
         }
@@ -1056,14 +1107,7 @@ fn one_step_round(
         if step == ONE_STEP_ITER {
             break;
         }
-        let shrink = (POLISH_TRUST / worst).min(1.0);
-        at = feasible(
-            basis,
-            &at.iter()
-                .zip(&target)
-                .map(|(a, t)| a + shrink * (t - a))
-                .collect::<Vec<_>>(),
-        );
+        at = clipped_move(basis, &at, &target, worst);
         jac = jacobian(
             setup,
             model,
@@ -1336,37 +1380,19 @@ pub fn refine(
                 (F, g, p.clone())
             }
         };
-        let Some(inv) = scaled_inverse(&F) else { break };
-        let naive: Vec<f64> = (0..p.len()).map(|a| inv[(a, a)].max(0.0).sqrt()).collect();
-        let Some(dp) = bounded_step(&F, &g, &centre, &basis) else {
+        let Some(ModelStep {
+            target,
+            naive,
+            worst,
+        }) = model_step(&F, &g, &centre, &p, &basis, false)
+        else {
             break;
         };
-        let target = feasible(
-            &basis,
-            &centre
-                .iter()
-                .zip(dp.iter())
-                .map(|(a, b)| a + b)
-                .collect::<Vec<_>>(),
-        );
-        // Clip the move to POLISH_TRUST naive errors (the secant is only a local model).
-        let worst = target
-            .iter()
-            .zip(&p)
-            .zip(&naive)
-            .map(|((t, a), b)| (t - a).abs() / b)
-            .fold(0.0, f64::max);
         if !worst.is_finite() {
             break;
         }
-        let shrink = (POLISH_TRUST / worst).min(1.0);
-        let next = feasible(
-            &basis,
-            &p.iter()
-                .zip(&target)
-                .map(|(a, t)| a + shrink * (t - a))
-                .collect::<Vec<_>>(),
-        );
+        // The move clipped to POLISH_TRUST naive errors (the secant is only a local model).
+        let next = clipped_move(&basis, &p, &target, worst);
         if worst <= POLISH_TOL || step == POLISH_ITER {
             // The answer is the averaged model's minimiser (the last Jacobian's point is one
             // draw of the rough cost's scatter around it).
