@@ -1098,7 +1098,7 @@ fn identify_once(
     check_observability_with(setup, &model, &opts, by_output_error)?;
     let (sigma, estimated) = channel_noise(setup, data);
     let prior = opts.prior.as_ref().and_then(|p| p.for_setup(setup));
-    let mut params = prior.map_or_else(|| setup.initial_params(), |p| p.values.clone());
+    let params = prior.map_or_else(|| setup.initial_params(), |p| p.values.clone());
     let mut motion_note = None;
     // What the data show first (the channel and the figure); a window cut from a longer
     // record is in motion even when its first sample cannot show it.
@@ -1193,28 +1193,252 @@ fn identify_once(
             setup, &model, data, &opts, truth, &sigma, &estimated, result,
         );
     }
-    let q = setup.connections.len();
-    let mut frozen: Option<KalmanTuning> = None;
+    let mut state = PassState {
+        params,
+        frozen: None,
+        tunings: 0,
+    };
+    // A long record whose answer the prediction error gives: the passes converge on its
+    // first samples, and one pass over the whole of it starts the refinement
+    // ([`PASS_PREFIX_SAMPLES`]).
+    let mut first_pass = 1;
+    let mut prefix_passes = None;
+    if let Some(prefix) = pass_prefix(setup, data, &opts) {
+        let (mut trial, mut trial_opts, mut trial_state) =
+            (result.clone(), opts.clone(), state.clone());
+        let mut reports: Vec<PassReport> = Vec::new();
+        let end = run_passes(
+            setup,
+            &model,
+            &prefix,
+            &mut trial_opts,
+            (&sigma, &estimated),
+            truth,
+            1,
+            opts.passes,
+            &mut trial_state,
+            &mut trial,
+            &mut |r| reports.push(r.clone()),
+            &mut |_, _| {},
+        );
+        // Only a converged prefix is a start; otherwise every pass runs over the whole
+        // record from the setup's values, as on a short record (nothing of the trial kept).
+        if matches!(end, PassLoopEnd::Converged) {
+            reports.iter().for_each(&mut *on_pass);
+            first_pass = trial.passes.len() + 1;
+            prefix_passes = Some(std::mem::take(&mut trial.stop_reason));
+            (result, opts, state) = (trial, trial_opts, trial_state);
+            result.converged = false;
+            result.notes.push(format!(
+                "long record: pass(es) 1–{} ran on its first {PASS_PREFIX_SAMPLES} samples (the refinement's start needs no more), the passes from {first_pass} on over the whole record",
+                first_pass - 1
+            ));
+        }
+    }
+    let whole_limit = if prefix_passes.is_some() {
+        1
+    } else {
+        opts.passes
+    };
+    let end = run_passes(
+        setup,
+        &model,
+        data,
+        &mut opts,
+        (&sigma, &estimated),
+        truth,
+        first_pass,
+        whole_limit,
+        &mut state,
+        &mut result,
+        on_pass,
+        on_sample,
+    );
+    if let PassLoopEnd::Refused(e) = end {
+        // The scan's free-run output error starts at rest: not for a record in motion.
+        if by_output_error
+            && opts.estimator == EstimatorKind::Kalman
+            && opts.initial_state.is_none()
+            && scan_fallback_applies(setup, &e)
+        {
+            return identify_from_scan(
+                setup,
+                &model,
+                data,
+                &opts,
+                truth,
+                &sigma,
+                &estimated,
+                result,
+                ScanReason::ResidualForceRefused(e),
+            );
+        }
+        return Err(e);
+    }
+    // The state to go on from if the refinement does not give the answer after all.
+    let mut unfinished = None;
+    if let (Some(on_prefix), PassLoopEnd::Limit) = (&prefix_passes, &end) {
+        unfinished = Some((result.clone(), opts.clone(), state.clone()));
+        let change = result
+            .passes
+            .last()
+            .and_then(|p| p.max_change_std_errors)
+            .unwrap_or(f64::NAN);
+        result.converged = true;
+        result.stop_reason = format!(
+            "{on_prefix} on the record's first {PASS_PREFIX_SAMPLES} samples; pass {first_pass} ran over the whole record from their answer (moving it by up to {change:.2} of its standard errors) to start the prediction-error refinement, which descends on the same first samples"
+        );
+    }
+    // The output-error stage starts from the last finished pass, also after a failed one.
+    result.initial_state = opts.initial_state.clone();
+    finish_with_output_error(setup, &model, data, &opts, &sigma, &mut result);
+    let by_prediction_error = result
+        .output_error
+        .as_ref()
+        .is_some_and(|r| r.prediction_error.is_some());
+    if let Some((mut again, mut again_opts, mut again_state)) = unfinished
+        && !by_prediction_error
+        && result.motion_in_record.is_none()
+    {
+        // The passes' answer is the answer (or the free run's start): converge it over the
+        // whole record as on a short one, and finish from there.
+        let end = run_passes(
+            setup,
+            &model,
+            data,
+            &mut again_opts,
+            (&sigma, &estimated),
+            truth,
+            first_pass + 1,
+            opts.passes.saturating_sub(1),
+            &mut again_state,
+            &mut again,
+            on_pass,
+            on_sample,
+        );
+        if let PassLoopEnd::Refused(e) = end {
+            return Err(e);
+        }
+        (result, opts) = (again, again_opts);
+        result.initial_state = opts.initial_state.clone();
+        finish_with_output_error(setup, &model, data, &opts, &sigma, &mut result);
+    }
+    if has_sign_basis(setup)
+        && let Some(sub) = result.output_error.as_ref().map(|r| r.substeps)
+    {
+        restate_final_errors(setup, &model, data, &sigma, &estimated, sub, &mut result);
+    }
+    if result.failure.is_some() {
+        return Ok(result);
+    }
+    if !result.converged && result.stop_reason.is_empty() {
+        let change = result.passes.last().and_then(|p| p.max_change_std_errors);
+        result.stop_reason = match change {
+            Some(c) => format!(
+                "not converged: reached the limit of {} passes (last change {c:.3} standard errors)",
+                opts.passes
+            ),
+            None => format!(
+                "not converged: reached the limit of {} pass(es), too few to measure a change (convergence needs at least 2)",
+                opts.passes
+            ),
+        };
+    }
+    Ok(result)
+}
+
+/// What the residual-force passes carry from one to the next (and from a long record's
+/// prefix to the whole of it).
+#[derive(Clone)]
+struct PassState {
+    /// The parameters the next pass runs with.
+    params: Vec<f64>,
+    /// The Kalman tuning once it is frozen.
+    frozen: Option<KalmanTuning>,
+    /// Tunings so far.
+    tunings: usize,
+}
+
+/// How a run of passes ended.
+enum PassLoopEnd {
+    /// Every parameter moved less than the tolerance.
+    Converged,
+    /// The pass limit was reached.
+    Limit,
+    /// A pass failed after sound ones: `result.failure` or `stop_reason` says why.
+    Stopped,
+    /// No pass to answer with (or the deferred refusal of an undetermined deformation).
+    Refused(IdentifyError),
+}
+
+/// Samples a long record's passes converge on when the prediction error gives its answer:
+/// the Kalman tuning's prefix.
+///
+/// Why: the passes are a fixed-point iteration, each step a filter run over the record
+/// (~0.25 s at 100,000 samples), 5–7 steps to 0.1 of their errors; when a `sign(u)` law
+/// is refined by prediction error their answer is only the refinement's start, and that
+/// refinement descends on the same first 10,000 samples
+/// ([`crate::estimate::prediction_error::DESCENT_PREFIX_SAMPLES`]) — its answer does not
+/// depend on where in its basin it starts. So on a record longer than twice this the
+/// passes converge on the prefix (a tenth of the cost each), one pass runs over the whole
+/// record from their answer (the per-sample residual forces, the track and the start the
+/// refinement gets), and the refinement follows. Measured from the same 100,000-sample
+/// record: passes 2.5 → 1.0 s (BENCHMARKS.md, twenty-third session). Should the refinement
+/// not give the answer after all, the whole record's passes go on to their convergence
+/// and the refinement stage runs again from it, as on a short record.
+pub const PASS_PREFIX_SAMPLES: usize = TUNE_SAMPLES;
+
+/// A long record's prefix for the Kalman passes ([`PASS_PREFIX_SAMPLES`]), if it has one.
+fn pass_prefix(setup: &Setup, data: &TestData, opts: &IdentifyOptions) -> Option<TestData> {
+    let sign_u = setup
+        .connections
+        .iter()
+        .any(|c| c.basis.contains(&Basis::SignU));
+    let refined = opts.estimator == EstimatorKind::Kalman && opts.output_error && sign_u;
+    if !refined || data.len() <= 2 * PASS_PREFIX_SAMPLES {
+        return None;
+    }
+    data.prefix(PASS_PREFIX_SAMPLES)
+}
+
+/// The residual-force passes from pass `first_pass` on, at most `opts.passes` of them, each
+/// running with the last one's answer (Aitken-extrapolated once the tuning is frozen),
+/// until every parameter moves less than the tolerance. The reports go to `result`.
+#[allow(clippy::too_many_arguments)]
+fn run_passes(
+    setup: &Setup,
+    model: &Model,
+    data: &TestData,
+    opts: &mut IdentifyOptions,
+    noise: (&[f64], &[bool]),
+    truth: Option<&[f64]>,
+    first_pass: usize,
+    limit: usize,
+    state: &mut PassState,
+    result: &mut Identification,
+    on_pass: &mut dyn FnMut(&PassReport),
+    on_sample: &mut dyn FnMut(usize, &StepOutput),
+) -> PassLoopEnd {
+    let (sigma, estimated) = noise;
     let mut plain_streak = 0usize;
     let mut prev_residual: Option<Vec<f64>> = None;
-    let mut tunings = 0;
     // The track and the start state that go with the pass before the last (restored when
     // the last is discarded, see [`discard_pass_that_diverged`]).
     let mut track_before: Option<Track> = None;
     let mut initial_before = opts.initial_state.clone();
-    for pass in 1..=opts.passes {
+    for pass in first_pass..first_pass + limit {
         let t0 = std::time::Instant::now();
         let outcome = run_pass(
             setup,
-            &model,
-            &params,
+            model,
+            &state.params,
             data,
-            &opts,
-            &sigma,
-            &estimated,
+            opts,
+            sigma,
+            estimated,
             pass,
             truth,
-            frozen.as_ref(),
+            state.frozen.as_ref(),
             &mut |o| on_sample(pass, o),
         );
         crate::par::phase("pass (with any tuning)", t0);
@@ -1227,8 +1451,8 @@ fn identify_once(
                         *a += d;
                     }
                 }
-                if frozen.is_none() && tuned.is_some() {
-                    tunings += 1;
+                if state.frozen.is_none() && tuned.is_some() {
+                    state.tunings += 1;
                     let settled = result
                         .passes
                         .last()
@@ -1244,14 +1468,14 @@ fn identify_once(
                     } else {
                         opts.max_tunings
                     };
-                    if settled || tunings >= limit {
-                        frozen = tuned;
+                    if settled || state.tunings >= limit {
+                        state.frozen = tuned;
                     }
                 }
                 r
             }
             Err(e) => {
-                let discarded = discard_pass_that_diverged(&mut result, &params, &e, pass);
+                let discarded = discard_pass_that_diverged(result, &state.params, &e, pass);
                 if let Some(note) = &discarded {
                     result.track = track_before.take();
                     opts.initial_state = initial_before.clone();
@@ -1265,39 +1489,19 @@ fn identify_once(
                         k.starts_with("delta_uncertainty_ratio") && *v > MAX_DEFORMATION_UNCERTAINTY
                     });
                 if result.passes.is_empty() || deferred {
-                    // The scan's free-run output error starts at rest: not for a record in
-                    // motion.
-                    if by_output_error
-                        && opts.estimator == EstimatorKind::Kalman
-                        && opts.initial_state.is_none()
-                        && scan_fallback_applies(setup, &e)
-                    {
-                        return identify_from_scan(
-                            setup,
-                            &model,
-                            data,
-                            &opts,
-                            truth,
-                            &sigma,
-                            &estimated,
-                            result,
-                            ScanReason::ResidualForceRefused(e),
-                        );
-                    }
-                    return Err(e);
+                    return PassLoopEnd::Refused(e);
                 }
                 // A failure caused by a pass that blew up is that pass's: the passes stop at
                 // the sound one before it, not converged, and the refinement goes on from it.
                 if let (Some(note), Some(sound)) = (&discarded, result.passes.last()) {
                     result.stop_reason = format!("stopped after pass {}: {note}", sound.pass);
-                    break;
+                    return PassLoopEnd::Stopped;
                 }
                 result.failure = Some(e.to_string());
                 result.stop_reason = format!("pass {pass} failed: {e}");
-                break;
+                return PassLoopEnd::Stopped;
             }
         };
-        let _ = q;
         let mut report = report;
         let mut all_converged = false;
         // Change of this pass: output against the parameters it ran with (the fixed-point
@@ -1312,7 +1516,7 @@ fn identify_once(
         let residual: Vec<f64> = report
             .parameters
             .iter()
-            .zip(&params)
+            .zip(&state.params)
             .map(|(a, b)| (a.value - b) / a.std_error.max(f64::MIN_POSITIVE))
             .collect();
         if pass >= 2 {
@@ -1322,7 +1526,7 @@ fn identify_once(
             for ((a, b), (col, frms)) in report
                 .parameters
                 .iter()
-                .zip(&params)
+                .zip(&state.params)
                 .zip(&report.force_scales)
             {
                 let d = (a.value - b).abs();
@@ -1355,7 +1559,10 @@ fn identify_once(
             let r = norm(&residual) / norm(prev).max(f64::MIN_POSITIVE);
             if r > 0.05 && r < 0.95 {
                 let w = r / (1.0 - r);
-                for (x, (a, b)) in next.iter_mut().zip(report.parameters.iter().zip(&params)) {
+                for (x, (a, b)) in next
+                    .iter_mut()
+                    .zip(report.parameters.iter().zip(&state.params))
+                {
                     *x += w * (a.value - b);
                 }
                 report.diagnostics.tuning.push(("aitken_ratio".into(), r));
@@ -1364,7 +1571,7 @@ fn identify_once(
         }
         prev_residual = Some(residual);
         on_pass(&report);
-        params = next;
+        state.params = next;
         result.passes.push(report);
         let (rel_ok, se_ok) = (all_converged, all_converged);
         if rel_ok || se_ok {
@@ -1373,34 +1580,10 @@ fn identify_once(
                 "converged after {pass} passes: every parameter moved less than {} standard errors or changed the fitted force by less than {:.0e} of its RMS",
                 opts.tolerance_std_errors, opts.tolerance_relative
             );
-            break;
+            return PassLoopEnd::Converged;
         }
     }
-    // The output-error stage starts from the last finished pass, also after a failed one.
-    result.initial_state = opts.initial_state.clone();
-    finish_with_output_error(setup, &model, data, &opts, &sigma, &mut result);
-    if has_sign_basis(setup)
-        && let Some(sub) = result.output_error.as_ref().map(|r| r.substeps)
-    {
-        restate_final_errors(setup, &model, data, &sigma, &estimated, sub, &mut result);
-    }
-    if result.failure.is_some() {
-        return Ok(result);
-    }
-    if !result.converged && result.stop_reason.is_empty() {
-        let change = result.passes.last().and_then(|p| p.max_change_std_errors);
-        result.stop_reason = match change {
-            Some(c) => format!(
-                "not converged: reached the limit of {} passes (last change {c:.3} standard errors)",
-                opts.passes
-            ),
-            None => format!(
-                "not converged: reached the limit of {} pass(es), too few to measure a change (convergence needs at least 2)",
-                opts.passes
-            ),
-        };
-    }
-    Ok(result)
+    PassLoopEnd::Limit
 }
 
 /// A pass whose model broke while it ran with the last pass's own answer — it diverged,

@@ -360,7 +360,86 @@ fn a_long_record_of_finely_integrated_data_is_refined_at_its_level() {
     // back to the damped descent): `prediction_error::ONE_STEP_ITER`.
     let steps = prediction_error_report(&id).whole_record_steps;
     assert!(matches!(steps, Some(1..=4)), "{steps:?} {:?}", id.notes);
+    // The passes converged on the first 10,000 samples and one ran over the whole record
+    // (`identify::PASS_PREFIX_SAMPLES`).
+    assert!(
+        id.stop_reason.contains("first 10000 samples"),
+        "{}",
+        id.stop_reason
+    );
     assert_every_parameter_within(&id, 2.0, "50,000 samples, 64 sub-steps, 1 %, seed 1");
+}
+
+/// A long record's passes converge on its first 10,000 samples and one pass over the whole
+/// record starts the prediction-error refinement (`identify::PASS_PREFIX_SAMPLES`); when
+/// that refinement does not give the answer, the passes' answer is the answer and they go
+/// on over the whole record to their tolerance. Here the model misfits the data (the beams'
+/// EI 10 % stiff: the prediction error's cost is 21× the noise variance and it is not
+/// used), 25,000 samples: the passes after the first whole-record one must run, and the
+/// last must have moved less than the tolerance.
+#[test]
+fn a_long_record_whose_refinement_is_not_used_has_its_passes_converged_over_all_of_it() {
+    let truth_setup = shipped_friction_setup();
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("recordings")
+        .join("two-beam-friction.toml");
+    let text = std::fs::read_to_string(&path)
+        .unwrap()
+        .replace("ei = 1.0e5", "ei = 1.1e5");
+    let misfit = Setup::from_toml(&text, "misfit EI").unwrap();
+    let steps = 25_000;
+    let sim = simulate(
+        &truth_setup,
+        &SimulateOptions {
+            scenario: Scenario::Random { rms: 2e4 },
+            steps,
+            dt_s: truth_setup.dt_s,
+            substeps: 1,
+            noise: Noise::Additive(0.01),
+            seed: 5,
+        },
+    )
+    .unwrap();
+    let data = TestData {
+        samples: (0..steps as u64).collect(),
+        t_ns: vec![0; steps],
+        excitation: sim.excitation,
+        response: sim.response,
+    };
+    let opts = IdentifyOptions::from_setup(&misfit);
+    let id = identify(&misfit, &data, &opts, None, &mut |_| {}, &mut |_, _| {}).unwrap();
+    assert!(
+        id.notes.iter().any(|n| n.contains("refinement not used")),
+        "{:?}",
+        id.notes
+    );
+    let on_prefix = id
+        .notes
+        .iter()
+        .find_map(|n| {
+            n.strip_prefix("long record: pass(es) 1–")
+                .and_then(|rest| rest.split(' ').next())
+                .and_then(|k| k.parse::<usize>().ok())
+        })
+        .expect("the passes started on the record's prefix");
+    assert!(
+        id.passes.len() >= on_prefix + 2,
+        "{} passes, {on_prefix} on the prefix",
+        id.passes.len()
+    );
+    assert!(id.converged, "{}", id.stop_reason);
+    assert!(
+        !id.stop_reason.contains("first 10000"),
+        "{}",
+        id.stop_reason
+    );
+    let last = id.passes.last().unwrap();
+    let moved = last.max_change_std_errors.unwrap();
+    let relative = last.max_change_force_relative.unwrap();
+    assert!(
+        moved <= opts.tolerance_std_errors || relative <= opts.tolerance_relative,
+        "the last pass moved {moved} errors ({relative} of the force)"
+    );
 }
 
 /// The prefix's descent on a long record whose Kalman start is far off (the spring setup,
