@@ -20,12 +20,24 @@ fn run(
     noise: Noise,
     seed: u64,
 ) -> Identification {
+    run_with(setup, setup, steps, data_substeps, noise, seed)
+}
+
+/// [`run`] with the data simulated by `truth_setup` and identified with `setup`.
+fn run_with(
+    truth_setup: &Setup,
+    setup: &Setup,
+    steps: usize,
+    data_substeps: usize,
+    noise: Noise,
+    seed: u64,
+) -> Identification {
     let sim = simulate(
-        setup,
+        truth_setup,
         &SimulateOptions {
             scenario: Scenario::Random { rms: 2e4 },
             steps,
-            dt_s: setup.dt_s,
+            dt_s: truth_setup.dt_s,
             substeps: data_substeps,
             noise,
             seed,
@@ -387,27 +399,8 @@ fn a_long_record_whose_refinement_is_not_used_has_its_passes_converged_over_all_
         .unwrap()
         .replace("ei = 1.0e5", "ei = 1.1e5");
     let misfit = Setup::from_toml(&text, "misfit EI").unwrap();
-    let steps = 25_000;
-    let sim = simulate(
-        &truth_setup,
-        &SimulateOptions {
-            scenario: Scenario::Random { rms: 2e4 },
-            steps,
-            dt_s: truth_setup.dt_s,
-            substeps: 1,
-            noise: Noise::Additive(0.01),
-            seed: 5,
-        },
-    )
-    .unwrap();
-    let data = TestData {
-        samples: (0..steps as u64).collect(),
-        t_ns: vec![0; steps],
-        excitation: sim.excitation,
-        response: sim.response,
-    };
+    let id = run_with(&truth_setup, &misfit, 25_000, 1, Noise::Additive(0.01), 5);
     let opts = IdentifyOptions::from_setup(&misfit);
-    let id = identify(&misfit, &data, &opts, None, &mut |_| {}, &mut |_, _| {}).unwrap();
     assert!(
         id.notes.iter().any(|n| n.contains("refinement not used")),
         "{:?}",
