@@ -1378,12 +1378,13 @@ enum PassLoopEnd {
 /// (~0.25 s at 100,000 samples), 5–7 steps to 0.1 of their errors; when a `sign(u)` law
 /// is refined by prediction error their answer is only the refinement's start, and that
 /// refinement descends on the same first 10,000 samples
-/// ([`crate::estimate::prediction_error::DESCENT_PREFIX_SAMPLES`]) — its answer does not
-/// depend on where in its basin it starts. So on a record longer than twice this the
-/// passes converge on the prefix (a tenth of the cost each), one pass runs over the whole
-/// record from their answer (the per-sample residual forces, the track and the start the
-/// refinement gets), and the refinement follows. Measured from the same 100,000-sample
-/// record: passes 2.5 → 1.0 s (BENCHMARKS.md, twenty-third session). Should the refinement
+/// ([`crate::estimate::prediction_error::DESCENT_PREFIX_SAMPLES`]) — its answer depends on
+/// where in its basin it starts only through the observer force tuned there (measured: up
+/// to 0.19 errors on 100,000-sample records, ACCURACY.md). So on a record longer than
+/// twice this the passes converge on the prefix (a tenth of the cost each), one pass runs
+/// over the whole record from their answer (the per-sample residual forces, the track and
+/// the start the refinement gets), and the refinement follows. Measured from the same 100,000-sample
+/// record: passes 1.7 → 0.8 s (BENCHMARKS.md, twenty-third session). Should the refinement
 /// not give the answer after all, the whole record's passes go on to their convergence
 /// and the refinement stage runs again from it, as on a short record.
 pub const PASS_PREFIX_SAMPLES: usize = TUNE_SAMPLES;
