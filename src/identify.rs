@@ -49,8 +49,8 @@ mod scan;
 use pem::{PEM_MAX_COST, PemStage, pem_undetermined, refine_by_prediction_error};
 use scan::{
     MAX_SCAN_PROBE_MOVE, SETTLE_ROUNDS, ScanReason, acceleration_only, has_sign_basis,
-    has_spring_basis, identify_acceleration_only, identify_from_scan, restate_final_errors,
-    scan_fallback_applies,
+    has_sign_u_basis, has_spring_basis, identify_acceleration_only, identify_from_scan,
+    restate_final_errors, scan_fallback_applies,
 };
 
 #[derive(Debug, thiserror::Error)]
@@ -1132,13 +1132,9 @@ fn identify_once(
         // The Kalman passes estimate the initial state, and so does the prediction-error
         // refinement that follows them for `sign(u)` laws; the free-run output error and
         // the 1989 estimator start at rest.
-        let sign_u = setup
-            .connections
-            .iter()
-            .any(|c| c.basis.contains(&Basis::SignU));
         let handled = opts.estimator == EstimatorKind::Kalman
             && model.has_dense()
-            && (sign_u || !opts.output_error);
+            && (has_sign_u_basis(setup) || !opts.output_error);
         if !handled {
             return Err(refusal);
         }
@@ -1383,26 +1379,24 @@ enum PassLoopEnd {
 /// to 0.19 errors on 100,000-sample records, ACCURACY.md). So on a record longer than
 /// twice this the passes converge on the prefix (a tenth of the cost each), one pass runs
 /// over the whole record from their answer (the per-sample residual forces, the track and
-/// the start the refinement gets), and the refinement follows. Measured from the same 100,000-sample
-/// record: passes 1.7 → 0.8 s (BENCHMARKS.md, twenty-third session). Should the refinement
-/// not give the answer after all, the whole record's passes go on to their convergence
-/// and the refinement stage runs again from it, as on a short record.
+/// the start the refinement gets), and the refinement follows. Measured on a
+/// 100,000-sample record: passes 1.7 → 0.8 s (BENCHMARKS.md, twenty-third session).
+/// Should the refinement not give the answer after all (refused, misfit, not run),
+/// the whole record's passes go on to their convergence and the refinement stage runs
+/// again from it, as on a short record.
 pub const PASS_PREFIX_SAMPLES: usize = TUNE_SAMPLES;
 
 /// A long record's prefix for the Kalman passes ([`PASS_PREFIX_SAMPLES`]), if it has one.
 fn pass_prefix(setup: &Setup, data: &TestData, opts: &IdentifyOptions) -> Option<TestData> {
-    let sign_u = setup
-        .connections
-        .iter()
-        .any(|c| c.basis.contains(&Basis::SignU));
-    let refined = opts.estimator == EstimatorKind::Kalman && opts.output_error && sign_u;
+    let refined =
+        opts.estimator == EstimatorKind::Kalman && opts.output_error && has_sign_u_basis(setup);
     if !refined || data.len() <= 2 * PASS_PREFIX_SAMPLES {
         return None;
     }
     data.prefix(PASS_PREFIX_SAMPLES)
 }
 
-/// The residual-force passes from pass `first_pass` on, at most `opts.passes` of them, each
+/// The residual-force passes from pass `first_pass` on, at most `limit` of them, each
 /// running with the last one's answer (Aitken-extrapolated once the tuning is frozen),
 /// until every parameter moves less than the tolerance. The reports go to `result`.
 #[allow(clippy::too_many_arguments)]
@@ -1760,10 +1754,7 @@ fn finish_with_output_error(
         })
         .collect();
     let (exc, resp) = (&data.excitation, &data.response);
-    let sign_u = setup
-        .connections
-        .iter()
-        .any(|c| c.basis.iter().any(|b| matches!(b, Basis::SignU)));
+    let sign_u = has_sign_u_basis(setup);
     if opts.output_error && sign_u {
         let t0 = std::time::Instant::now();
         let refined =

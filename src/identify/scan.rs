@@ -40,6 +40,14 @@ pub(super) fn has_spring_basis(setup: &Setup) -> bool {
         .any(|c| c.basis.iter().any(|b| matches!(b, Basis::U)))
 }
 
+/// Some connection has a `sign(u)` friction term: the law the prediction error refines.
+pub(super) fn has_sign_u_basis(setup: &Setup) -> bool {
+    setup
+        .connections
+        .iter()
+        .any(|c| c.basis.contains(&Basis::SignU))
+}
+
 /// Whether a connection's law has a `sign` term (friction).
 pub(super) fn has_sign_basis(setup: &Setup) -> bool {
     setup
