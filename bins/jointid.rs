@@ -547,6 +547,11 @@ fn run(cli: Cli) -> Result<ExitCode> {
                         "(none)"
                     })
                 );
+                if i.model_files_attached {
+                    println!(
+                        "  model files  attached (the setup's [model.matrix_market] files, as read)"
+                    );
+                }
                 println!(
                     "  excitation   {} frames: {}",
                     i.excitation_frames,

@@ -157,7 +157,7 @@ pub fn simulate_recording(
     let sim = simulate(setup, opts)?;
     let mut w = RecordingWriter::create(out, encoding)?;
     // Keep the attached setup true to the data: the replay reads dt_s from it.
-    w.attach_setup(&setup.at_rate(opts.dt_s)?.toml_text)?;
+    w.attach_setup_of(&setup.at_rate(opts.dt_s)?)?;
     let truth: BTreeMap<String, f64> = setup
         .param_keys()
         .into_iter()
@@ -314,7 +314,7 @@ pub(crate) fn write_results(
     prediction: &Result<Vec<Vec<f64>>, String>,
 ) -> Result<(), AppError> {
     let mut w = RecordingWriter::create(out, FrameEncoding::Json)?;
-    w.attach_setup(&setup.toml_text)?;
+    w.attach_setup_of(setup)?;
     if !header.truth.is_empty() {
         w.write_metadata(
             TRUTH_METADATA,
@@ -565,6 +565,8 @@ pub struct Inspection {
     pub last_sample: Option<u64>,
     pub duration_s: f64,
     pub setup_attached: bool,
+    /// The attached setup's external model files (`[model.matrix_market]`) are attached too.
+    pub model_files_attached: bool,
     pub setup_title: Option<String>,
     pub truth: BTreeMap<String, f64>,
     pub facts: BTreeMap<String, String>,
@@ -602,7 +604,7 @@ pub fn inspect(path: &Path) -> Result<Inspection, AppError> {
     let title = h
         .setup_toml
         .as_deref()
-        .and_then(|t| Setup::from_toml(t, "attached").ok())
+        .and_then(|t| Setup::from_toml_with_model_files(t, "attached", h.model_files.as_ref()).ok())
         .map(|s| s.title);
     Ok(Inspection {
         path: path.to_path_buf(),
@@ -615,6 +617,7 @@ pub fn inspect(path: &Path) -> Result<Inspection, AppError> {
         last_sample: last,
         duration_s: (t1.saturating_sub(t0)) as f64 * 1e-9,
         setup_attached: h.setup_toml.is_some(),
+        model_files_attached: h.model_files.is_some(),
         setup_title: title,
         truth: h.truth.clone(),
         facts: h.facts.clone(),

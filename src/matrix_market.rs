@@ -75,18 +75,6 @@ impl Triplets {
 /// enough that sizes computed from it cannot overflow.
 pub const MAX_DIMENSION: usize = 10_000_000;
 
-/// Read a Matrix Market file (see the module docs for what is accepted).
-pub fn read_matrix(path: &Path) -> Result<Triplets, MatrixMarketError> {
-    let text =
-        crate::io::read_text_capped(path, crate::io::MAX_MODEL_FILE_BYTES).map_err(|error| {
-            MatrixMarketError::Io {
-                path: path.to_path_buf(),
-                error,
-            }
-        })?;
-    parse_matrix(&text, path)
-}
-
 /// Parse Matrix Market text; `path` is only used in messages.
 pub fn parse_matrix(text: &str, path: &Path) -> Result<Triplets, MatrixMarketError> {
     let syntax = |line: usize, message: String| MatrixMarketError::Syntax {
@@ -340,18 +328,6 @@ fn parse_dir(s: &str) -> Option<Dir> {
     })
 }
 
-/// Read a DOF map: the label of each matrix row, in row order (0-based index = row − 1).
-pub fn read_dof_map(path: &Path) -> Result<Vec<DofRef>, MatrixMarketError> {
-    let text =
-        crate::io::read_text_capped(path, crate::io::MAX_MODEL_FILE_BYTES).map_err(|error| {
-            MatrixMarketError::Io {
-                path: path.to_path_buf(),
-                error,
-            }
-        })?;
-    parse_dof_map(&text, path)
-}
-
 /// Parse DOF map text; `path` is only used in messages.
 pub fn parse_dof_map(text: &str, path: &Path) -> Result<Vec<DofRef>, MatrixMarketError> {
     let syntax = |line: usize, message: String| MatrixMarketError::Syntax {
@@ -442,6 +418,58 @@ pub struct ExternalModel {
     pub dof_map: PathBuf,
     /// Label of each row, in row order.
     pub dofs: Vec<DofRef>,
+    /// The files' text as read: a recording made with this model carries them
+    /// ([`crate::io::mcap`]), so it replays with the matrices it was made with wherever it
+    /// is moved and whatever becomes of the files.
+    pub sources: ModelFiles,
+}
+
+/// The text of an external model's files, one per `[model.matrix_market]` key.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct ModelFiles {
+    pub mass: String,
+    pub stiffness: String,
+    pub damping: Option<String>,
+    pub dof_map: String,
+}
+
+impl ModelFiles {
+    /// The `[model.matrix_market]` keys and their texts, in a fixed order (the names a
+    /// recording's attachments carry).
+    pub fn entries(&self) -> Vec<(&'static str, &str)> {
+        let mut v = vec![
+            ("mass", self.mass.as_str()),
+            ("stiffness", self.stiffness.as_str()),
+        ];
+        if let Some(d) = &self.damping {
+            v.push(("damping", d.as_str()));
+        }
+        v.push(("dof_map", self.dof_map.as_str()));
+        v
+    }
+
+    /// Read the files (capped at [`crate::io::MAX_MODEL_FILE_BYTES`] each).
+    pub fn read(
+        mass: &Path,
+        stiffness: &Path,
+        damping: Option<&Path>,
+        dof_map: &Path,
+    ) -> Result<Self, MatrixMarketError> {
+        let read = |path: &Path| {
+            crate::io::read_text_capped(path, crate::io::MAX_MODEL_FILE_BYTES).map_err(|error| {
+                MatrixMarketError::Io {
+                    path: path.to_path_buf(),
+                    error,
+                }
+            })
+        };
+        Ok(Self {
+            mass: read(mass)?,
+            stiffness: read(stiffness)?,
+            damping: damping.map(read).transpose()?,
+            dof_map: read(dof_map)?,
+        })
+    }
 }
 
 /// Relative tolerance of the symmetry check, against the largest |entry| of the matrix.
@@ -455,11 +483,33 @@ impl ExternalModel {
         damping: Option<&Path>,
         dof_map: &Path,
     ) -> Result<Self, MatrixMarketError> {
-        let dofs = read_dof_map(dof_map)?;
+        let files = ModelFiles::read(mass, stiffness, damping, dof_map)?;
+        Self::from_files(files, mass, stiffness, damping, dof_map)
+    }
+
+    /// Parse and check the files' text; the paths only name them in messages.
+    pub fn from_files(
+        files: ModelFiles,
+        mass: &Path,
+        stiffness: &Path,
+        damping: Option<&Path>,
+        dof_map: &Path,
+    ) -> Result<Self, MatrixMarketError> {
+        let dofs = parse_dof_map(&files.dof_map, dof_map)?;
         let n = dofs.len();
-        let mass = read_matrix(mass)?;
-        let stiffness = read_matrix(stiffness)?;
-        let damping = damping.map(read_matrix).transpose()?;
+        let mass = parse_matrix(&files.mass, mass)?;
+        let stiffness = parse_matrix(&files.stiffness, stiffness)?;
+        let damping = match (&files.damping, damping) {
+            (Some(text), Some(path)) => Some(parse_matrix(text, path)?),
+            (Some(text), None) => Some(parse_matrix(text, Path::new("damping"))?),
+            (None, Some(path)) => {
+                return Err(MatrixMarketError::Matrix {
+                    path: path.to_path_buf(),
+                    message: "named by the setup but not among the model's files".into(),
+                });
+            }
+            (None, None) => None,
+        };
         for m in std::iter::once(&mass)
             .chain(std::iter::once(&stiffness))
             .chain(damping.iter())
@@ -541,6 +591,7 @@ impl ExternalModel {
             damping,
             dof_map: dof_map.to_path_buf(),
             dofs,
+            sources: files,
         })
     }
 }

@@ -30,7 +30,7 @@ pub enum SetupError {
     #[error("setup {origin}: {message}")]
     Parse { origin: String, message: String },
     #[error(
-        "setup {origin}: model.matrix_market: {error} (paths are relative to the setup file's directory; for a setup attached to a recording, to the recording's directory: the recording does not carry the matrix files, so keep them beside it or give `--setup` the setup file)"
+        "setup {origin}: model.matrix_market: {error} (paths are relative to the setup file's directory; for a setup attached to a recording that does not carry its model's files (made before 2026-11-29), to the recording's directory: keep the files beside it or give `--setup` the setup file)"
     )]
     MatrixMarket {
         origin: String,
@@ -731,7 +731,11 @@ impl Setup {
                 text.push('\n');
             }
         }
-        Setup::from_toml(&text, &format!("{} at dt_s = {dt_s:e}", self.origin))
+        Setup::from_toml_with_model_files(
+            &text,
+            &format!("{} at dt_s = {dt_s:e}", self.origin),
+            self.model_files(),
+        )
     }
 
     /// The windows the record is identified in (`[estimator] window_samples`,
@@ -780,7 +784,7 @@ impl Setup {
                 text.push('\n');
             }
         }
-        Setup::from_toml(&text, &self.origin)
+        Setup::from_toml_with_model_files(&text, &self.origin, self.model_files())
     }
 
     pub fn from_file(path: &Path) -> Result<Self, SetupError> {
@@ -795,11 +799,28 @@ impl Setup {
     }
 
     pub fn from_toml(text: &str, origin: &str) -> Result<Self, SetupError> {
+        Self::from_toml_with_model_files(text, origin, None)
+    }
+
+    /// [`Setup::from_toml`] with the text of the `[model.matrix_market]` files given
+    /// (`files`: those a recording carries, or the ones a setup was already read with)
+    /// instead of read from the paths the setup names; `None`: read them. Ignored by a
+    /// setup without `[model.matrix_market]`.
+    pub fn from_toml_with_model_files(
+        text: &str,
+        origin: &str,
+        files: Option<&crate::matrix_market::ModelFiles>,
+    ) -> Result<Self, SetupError> {
         let raw: SetupFile = toml::from_str(text).map_err(|e| SetupError::Parse {
             origin: origin.to_string(),
             message: one_line_toml_error(text, &e),
         })?;
-        validate(raw, text, origin)
+        validate(raw, text, origin, files)
+    }
+
+    /// The text of the external model's files, if the model is external.
+    pub fn model_files(&self) -> Option<&crate::matrix_market::ModelFiles> {
+        self.external.as_deref().map(|e| &e.sources)
     }
 
     /// Total number of connection parameters.
@@ -858,7 +879,12 @@ fn link_value_key(text: &str, what: &str, i: usize) -> &'static str {
         .unwrap_or("value")
 }
 
-fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupError> {
+fn validate(
+    raw: SetupFile,
+    text: &str,
+    origin: &str,
+    files: Option<&crate::matrix_market::ModelFiles>,
+) -> Result<Setup, SetupError> {
     let bad = |key: String, message: String| SetupError::Invalid {
         origin: origin.to_string(),
         key,
@@ -895,12 +921,23 @@ fn validate(raw: SetupFile, text: &str, origin: &str) -> Result<Setup, SetupErro
             // Relative paths are relative to the directory of the setup's origin.
             let base = Path::new(origin).parent().unwrap_or(Path::new(""));
             let at = |p: &Path| base.join(p);
-            let ext = crate::matrix_market::ExternalModel::load(
-                &at(&mm.mass),
-                &at(&mm.stiffness),
-                mm.damping.as_deref().map(at).as_deref(),
-                &at(&mm.dof_map),
-            )
+            let (mass, stiffness, dof_map) = (at(&mm.mass), at(&mm.stiffness), at(&mm.dof_map));
+            let damping = mm.damping.as_deref().map(at);
+            let ext = match files {
+                None => crate::matrix_market::ExternalModel::load(
+                    &mass,
+                    &stiffness,
+                    damping.as_deref(),
+                    &dof_map,
+                ),
+                Some(f) => crate::matrix_market::ExternalModel::from_files(
+                    f.clone(),
+                    &mass,
+                    &stiffness,
+                    damping.as_deref(),
+                    &dof_map,
+                ),
+            }
             .map_err(|error| SetupError::MatrixMarket {
                 origin: origin.to_string(),
                 error,

@@ -224,3 +224,111 @@ basis = ["u"]
 [integrator]
 dt_s = 1e-4
 "#;
+
+/// A recording made from an external model carries the model's files: moved away from them
+/// it replays with the matrices it was made with (the identified parameters near the
+/// truth), and other files of the same names beside it do not change the answer (the
+/// attached ones are used; `--setup` reads the files on disk instead).
+#[test]
+fn a_recording_of_an_external_model_carries_its_files_and_replays_anywhere() {
+    use std::process::Command;
+    let jointid = env!("CARGO_BIN_EXE_jointid");
+    let made = tempfile::tempdir().unwrap();
+    let moved = tempfile::tempdir().unwrap();
+    let shipped = root().join("recordings/two-beam-mm");
+    for f in ["setup.toml", "mass.mtx", "stiffness.mtx", "dofs.csv"] {
+        std::fs::copy(shipped.join(f), made.path().join(f)).unwrap();
+    }
+    let rec = made.path().join("rec.mcap");
+    let out = Command::new(jointid)
+        .arg("simulate")
+        .arg(made.path().join("setup.toml"))
+        .arg("--out")
+        .arg(&rec)
+        .args([
+            "--steps",
+            "1500",
+            "--noise",
+            "additive:0.01",
+            "--seed",
+            "11",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let away = moved.path().join("rec.mcap");
+    std::fs::rename(&rec, &away).unwrap();
+    let replay = |extra: &[&std::ffi::OsStr]| {
+        let out = Command::new(jointid)
+            .arg("replay")
+            .arg(&away)
+            .args(extra)
+            .arg("--json")
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        v["parameters"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|p| {
+                (
+                    p["value"].as_f64().unwrap(),
+                    p["std_error"].as_f64().unwrap(),
+                )
+            })
+            .collect::<Vec<_>>()
+    };
+    // Nothing beside it: the attached files are used.
+    let alone = replay(&[]);
+    // sign(u), u: within 4 standard errors of the truth (3e3 N, 3e5 N/m).
+    for (i, truth) in [(0, 3.0e3), (1, 3.0e5)] {
+        let (v, se) = alone[i];
+        assert!(
+            (v - truth).abs() <= 4.0 * se,
+            "parameter {i}: {v} ± {se}, truth {truth}"
+        );
+    }
+    // A stiffer model of the same names beside it: the answer is the same to the bit.
+    let stiff: String = std::fs::read_to_string(shipped.join("stiffness.mtx"))
+        .unwrap()
+        .lines()
+        .map(|l| {
+            let f: Vec<&str> = l.split_whitespace().collect();
+            match (l.starts_with('%'), f.as_slice()) {
+                (false, [i, j, v]) if v.contains(['.', 'e']) => {
+                    format!("{i} {j} {:e}\n", 1.3 * v.parse::<f64>().unwrap())
+                }
+                _ => format!("{l}\n"),
+            }
+        })
+        .collect();
+    for f in ["setup.toml", "mass.mtx", "dofs.csv"] {
+        std::fs::copy(shipped.join(f), moved.path().join(f)).unwrap();
+    }
+    std::fs::write(moved.path().join("stiffness.mtx"), stiff).unwrap();
+    assert_eq!(replay(&[]), alone, "the attached files must be used");
+    // `--setup` reads the (stiffer) files on disk: another model, another answer.
+    let setup = moved.path().join("setup.toml");
+    let other = replay(&["--setup".as_ref(), setup.as_os_str()]);
+    assert!(
+        (other[1].0 - alone[1].0).abs() > 4.0 * alone[1].1,
+        "{other:?} vs {alone:?}"
+    );
+    let out = Command::new(jointid)
+        .arg("inspect")
+        .arg(&away)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("model files  attached"), "{text}");
+}

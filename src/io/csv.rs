@@ -269,7 +269,7 @@ pub fn import_csv(
     let attached = setup.at_rate(dt_s)?;
 
     let mut writer = RecordingWriter::create(out, opts.encoding.unwrap_or(FrameEncoding::Binary))?;
-    writer.attach_setup(&attached.toml_text)?;
+    writer.attach_setup_of(&attached)?;
     let facts: BTreeMap<String, String> = [
         (
             "generator",

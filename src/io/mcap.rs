@@ -21,7 +21,12 @@
 //!   (wrapping).
 //! - Within each input topic, sample indices strictly increase and `t_ns` never decreases.
 //! - The run setup (TOML text) is the attachment `setup.toml`, media type `application/toml`
-//!   (log and create time 0, so identical runs give identical files).
+//!   (log and create time 0, so identical runs give identical files). A setup with
+//!   `[model.matrix_market]` also has its model's files attached as read, one per key:
+//!   `model.matrix_market.mass`, `.stiffness`, `.damping` (if any), media type
+//!   `text/x-matrix-market`, and `model.matrix_market.dof_map`, `text/csv`; a replay of the
+//!   attached setup uses them, not the files its paths name (recordings made before
+//!   2026-11-29 carry none: their matrices are read beside the recording).
 //! - Metadata record `jointid.truth`: parameter key (e.g. `joint6.u`) to value as a decimal
 //!   string (optional; values must parse as finite `f64`). Metadata record
 //!   `jointid.recording`: free-form facts (generator, scenario, dt_s, substeps, noise, seed...).
@@ -96,6 +101,8 @@ pub const CHANNELS_KEY: &str = "channels";
 pub const UNITS_KEY: &str = "units";
 pub const SETUP_ATTACHMENT_NAME: &str = "setup.toml";
 pub const SETUP_MEDIA_TYPE: &str = "application/toml";
+/// Prefix of the attachments that carry an external model's files (the key follows).
+pub const MODEL_FILE_ATTACHMENT_PREFIX: &str = "model.matrix_market.";
 pub const TRUTH_METADATA: &str = "jointid.truth";
 pub const RECORDING_METADATA: &str = "jointid.recording";
 
@@ -326,6 +333,12 @@ pub enum McapIoError {
     },
     #[error("{path}: attachment setup.toml: {what}")]
     BadSetup { path: PathBuf, what: String },
+    #[error("{path}: attachment {name}: {what}")]
+    BadModelFile {
+        path: PathBuf,
+        name: String,
+        what: String,
+    },
     #[error("{path}: topic {topic}: cannot serialise the message as JSON: {source}")]
     Json {
         path: PathBuf,
@@ -545,6 +558,47 @@ impl RecordingWriter {
             })
             .map_err(mcap_error(&self.partial))?;
         self.setup_attached = true;
+        Ok(())
+    }
+
+    /// Attaches a setup: its text as `setup.toml` and, for an external model, its files
+    /// ([`Self::attach_model_files`]) — what a recording needs to be replayed anywhere.
+    pub fn attach_setup_of(&mut self, setup: &crate::setup::Setup) -> Result<(), McapIoError> {
+        self.attach_setup(&setup.toml_text)?;
+        match setup.model_files() {
+            Some(files) => self.attach_model_files(files),
+            None => Ok(()),
+        }
+    }
+
+    /// Attaches the text of an external model's files (`[model.matrix_market]`), one
+    /// attachment per key, after [`Self::attach_setup`] of the setup that names them.
+    pub fn attach_model_files(
+        &mut self,
+        files: &crate::matrix_market::ModelFiles,
+    ) -> Result<(), McapIoError> {
+        if !self.setup_attached {
+            return Err(usage(
+                &self.partial,
+                "model files are attached after the setup that names them",
+            ));
+        }
+        for (key, text) in files.entries() {
+            let media_type = if key == "dof_map" {
+                "text/csv"
+            } else {
+                "text/x-matrix-market"
+            };
+            self.writer
+                .attach(&Attachment {
+                    log_time: 0,
+                    create_time: 0,
+                    name: format!("{MODEL_FILE_ATTACHMENT_PREFIX}{key}"),
+                    media_type: media_type.to_string(),
+                    data: text.as_bytes().into(),
+                })
+                .map_err(mcap_error(&self.partial))?;
+        }
         Ok(())
     }
 
@@ -813,6 +867,8 @@ fn parse_truth(path: &Path, key: &str, value: &str) -> Result<f64, McapIoError> 
 pub struct Recording {
     pub path: PathBuf,
     pub setup_toml: Option<String>,
+    /// The attached setup's external model files, if it has them (module docs).
+    pub model_files: Option<crate::matrix_market::ModelFiles>,
     /// Parsed from `jointid.truth`; empty when the record is absent.
     pub truth: BTreeMap<String, f64>,
     /// `jointid.recording`.
@@ -832,6 +888,7 @@ pub struct Recording {
 pub struct RecordingHeader {
     pub path: PathBuf,
     pub setup_toml: Option<String>,
+    pub model_files: Option<crate::matrix_market::ModelFiles>,
     pub truth: BTreeMap<String, f64>,
     pub facts: BTreeMap<String, String>,
     pub excitation_channels: ChannelInfo,
@@ -855,6 +912,7 @@ pub fn read_recording(path: &Path) -> Result<Recording, McapIoError> {
     let RecordingHeader {
         path,
         setup_toml,
+        model_files,
         truth,
         facts,
         excitation_channels,
@@ -864,6 +922,7 @@ pub fn read_recording(path: &Path) -> Result<Recording, McapIoError> {
     Ok(Recording {
         path,
         setup_toml,
+        model_files,
         truth,
         facts,
         excitation_channels,
@@ -1123,6 +1182,7 @@ fn decode_frame(
 fn read_header(path: &Path) -> Result<RecordingHeader, McapIoError> {
     let mut walker = Walker::open(path)?;
     let mut setup_toml = None;
+    let mut model_parts: BTreeMap<String, String> = BTreeMap::new();
     let mut truth = BTreeMap::new();
     let mut facts = BTreeMap::new();
     let mut inputs: [Option<InputChannel>; 2] = [None, None];
@@ -1158,6 +1218,19 @@ fn read_header(path: &Path) -> Result<RecordingHeader, McapIoError> {
                     })?;
                     setup_toml = Some(text);
                 }
+                Record::Attachment { header, data, .. }
+                    if header.name.starts_with(MODEL_FILE_ATTACHMENT_PREFIX) =>
+                {
+                    let key = header.name[MODEL_FILE_ATTACHMENT_PREFIX.len()..].to_string();
+                    let text = String::from_utf8(data.into_owned()).map_err(|e| {
+                        McapIoError::BadModelFile {
+                            path: path.to_path_buf(),
+                            name: header.name.clone(),
+                            what: format!("not UTF-8: {e}"),
+                        }
+                    })?;
+                    model_parts.insert(key, text);
+                }
                 Record::Metadata(metadata) if metadata.name == TRUTH_METADATA => {
                     for (key, value) in &metadata.metadata {
                         truth.insert(key.clone(), parse_truth(path, key, value)?);
@@ -1180,15 +1253,54 @@ fn read_header(path: &Path) -> Result<RecordingHeader, McapIoError> {
     };
     let excitation = excitation.ok_or_else(|| missing(InputTopic::Excitation))?;
     let response = response.ok_or_else(|| missing(InputTopic::Response))?;
+    let model_files = model_files_of(path, model_parts)?;
     Ok(RecordingHeader {
         path: path.to_path_buf(),
         setup_toml,
+        model_files,
         truth,
         facts,
         encoding: excitation.encoding,
         excitation_channels: excitation.info,
         response_channels: response.info,
     })
+}
+
+/// The external model's files from their attachments (`key → text`): none, or `mass`,
+/// `stiffness`, `dof_map` and an optional `damping` — anything else is named as an error.
+fn model_files_of(
+    path: &Path,
+    mut parts: BTreeMap<String, String>,
+) -> Result<Option<crate::matrix_market::ModelFiles>, McapIoError> {
+    if parts.is_empty() {
+        return Ok(None);
+    }
+    let bad = |name: &str, what: &str| McapIoError::BadModelFile {
+        path: path.to_path_buf(),
+        name: format!("{MODEL_FILE_ATTACHMENT_PREFIX}{name}"),
+        what: what.to_string(),
+    };
+    let mut take = |key: &str| {
+        parts.remove(key).ok_or_else(|| {
+            bad(
+                key,
+                "missing (the recording carries some of its model's files but not this one)",
+            )
+        })
+    };
+    let files = crate::matrix_market::ModelFiles {
+        mass: take("mass")?,
+        stiffness: take("stiffness")?,
+        dof_map: take("dof_map")?,
+        damping: parts.remove("damping"),
+    };
+    if let Some(key) = parts.keys().next() {
+        return Err(bad(
+            key,
+            "not a model file key (mass, stiffness, damping, dof_map)",
+        ));
+    }
+    Ok(Some(files))
 }
 
 /// The records of one complete top-level record: a chunk's contents (CRC checked first), or
@@ -1810,6 +1922,86 @@ mod tests {
                 assert_eq!(bits(&rec.excitation), bits(&w.exc));
             }
         }
+    }
+
+    /// An external model's files ride along as attachments and read back as written;
+    /// a recording that carries only some of them is refused naming the missing one.
+    #[test]
+    fn model_files_round_trip_and_an_incomplete_set_is_named() {
+        use crate::matrix_market::ModelFiles;
+        let dir = tempfile::tempdir().unwrap();
+        let files = ModelFiles {
+            mass: "%%MatrixMarket matrix coordinate real symmetric\n1 1 1\n1 1 2.5\n".into(),
+            stiffness: "%%MatrixMarket matrix coordinate real symmetric\n1 1 1\n1 1 4e3\n".into(),
+            damping: None,
+            dof_map: "node,direction,row\n1,w,1\n".into(),
+        };
+        let write = |path: &Path, files: &[(&str, &str)]| {
+            let mut w = RecordingWriter::create(path, FrameEncoding::Json).unwrap();
+            w.attach_setup(SETUP).unwrap();
+            for (key, text) in files {
+                w.writer
+                    .attach(&Attachment {
+                        log_time: 0,
+                        create_time: 0,
+                        name: format!("{MODEL_FILE_ATTACHMENT_PREFIX}{key}"),
+                        media_type: "text/plain".into(),
+                        data: text.as_bytes().into(),
+                    })
+                    .unwrap();
+            }
+            w.declare_inputs(&exc_info(), &resp_info()).unwrap();
+            for f in frames(3, 2, 0.0) {
+                w.write_excitation(&f).unwrap();
+            }
+            for f in frames(3, 3, 1.0) {
+                w.write_response(&f).unwrap();
+            }
+            w.finish().unwrap();
+        };
+        // Through the writer's own method.
+        let path = dir.path().join("whole.mcap");
+        let mut w = RecordingWriter::create(&path, FrameEncoding::Json).unwrap();
+        assert!(
+            w.attach_model_files(&files).is_err(),
+            "files before the setup"
+        );
+        w.attach_setup(SETUP).unwrap();
+        w.attach_model_files(&files).unwrap();
+        w.declare_inputs(&exc_info(), &resp_info()).unwrap();
+        w.finish().unwrap();
+        assert_eq!(
+            read_recording(&path).unwrap().model_files,
+            Some(files.clone())
+        );
+        // No model files: none read.
+        let path = dir.path().join("none.mcap");
+        write(&path, &[]);
+        assert_eq!(read_recording(&path).unwrap().model_files, None);
+        // The mass and the DOF map without the stiffness.
+        let path = dir.path().join("part.mcap");
+        write(&path, &[("mass", &files.mass), ("dof_map", &files.dof_map)]);
+        let e = read_recording(&path).unwrap_err().to_string();
+        assert!(
+            e.contains("part.mcap") && e.contains("model.matrix_market.stiffness: missing"),
+            "{e}"
+        );
+        // An unknown key.
+        let path = dir.path().join("odd.mcap");
+        write(
+            &path,
+            &[
+                ("mass", &files.mass),
+                ("stiffness", &files.stiffness),
+                ("dof_map", &files.dof_map),
+                ("gyroscopic", "x"),
+            ],
+        );
+        let e = read_recording(&path).unwrap_err().to_string();
+        assert!(
+            e.contains("model.matrix_market.gyroscopic: not a model file key"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -1931,7 +1931,7 @@ impl Sink<'_> {
         .into_iter()
         .collect();
         self.record(|w| {
-            w.attach_setup(&setup.toml_text)?;
+            w.attach_setup_of(setup)?;
             w.write_metadata(RECORDING_METADATA, &facts)
         });
     }

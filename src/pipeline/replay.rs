@@ -395,7 +395,12 @@ pub(crate) fn replay_setup(
             let text = header.setup_toml.clone().ok_or(AppError::NoSetup {
                 path: path.to_path_buf(),
             })?;
-            Setup::from_toml(&text, &format!("{} (attached setup.toml)", path.display()))?
+            // The model's files the recording carries, if any (else read beside it).
+            Setup::from_toml_with_model_files(
+                &text,
+                &format!("{} (attached setup.toml)", path.display()),
+                header.model_files.as_ref(),
+            )?
         }
     };
     let exc = excitation_channels(&setup);
