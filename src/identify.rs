@@ -621,6 +621,8 @@ pub struct KalmanTuning {
     pub sigma: Vec<f64>,
     pub log_likelihood: f64,
     pub runs: usize,
+    /// The model-error std was taken by the likelihood (not the default nor given).
+    pub model_error_taken: bool,
 }
 
 /// Innovation log-likelihood of a filter-only Kalman run over (a prefix of) the data.
@@ -691,11 +693,33 @@ fn kalman_log_likelihood(
 /// The passes themselves, the parameters and their errors use the whole record.
 pub const TUNE_SAMPLES: usize = 10_000;
 
+/// Half-width, in decades, of a re-tune's search of the random-walk std around the previous
+/// tuning's (a 1-decade grid of 7 points, then Brent). Measured between the first two
+/// tunings of the shipped friction replay: 3.1e4 → 978 N (1.5 decades); the noise scale the
+/// same to 1e-4.
+pub const RETUNE_WALK_DECADES: f64 = 3.0;
+
+/// Log-likelihood gain of a re-tune's noise scale or model-error std above which σ_R is
+/// searched again at it (half of the 95 % point of χ²₁, 3.84: a smaller gain is no evidence
+/// the other tunings moved, and σ_R's optimum with them moves less than its tolerance).
+const RETUNE_SIGNIFICANT_GAIN: f64 = 1.92;
+
 /// Choose the Kalman estimator's random-walk std σ_R (and, when `opts.tune_noise_scale`, a
 /// common scale of the estimated channel noise levels) by maximising the innovation
 /// likelihood of filter-only runs: σ_R over a log grid of 1e-6…1e2 × the force scale with
 /// Brent's method ([`crate::estimate::tuning::maximise_log`]), then the noise scale over
 /// 1e-8…1e1, then σ_R again around the new optimum.
+///
+/// `previous`: a tuning made at earlier parameters of the same record (the passes re-tune at
+/// each pass's answer until they settle). The search then starts from it: σ_R over
+/// ± [`RETUNE_WALK_DECADES`], the noise scale and a model-error std the previous tuning
+/// took over ± 30× (each a 5-point grid), σ_R again ± 30× when either moved; a model-error
+/// std the previous tuning did not take (its likelihood was no better with one) is not
+/// searched again. Why: the noise scale is a property of the sensors and σ_R of the
+/// model's distance from the data, which the pass before has only narrowed; the full
+/// search (41–45 filter runs) was the second tuning's cost again, a sixth of a
+/// 2,000-sample identification (BENCHMARKS.md, twenty-fourth session).
+#[allow(clippy::too_many_arguments)]
 pub fn tune_kalman(
     setup: &Setup,
     model: &Model,
@@ -704,6 +728,7 @@ pub fn tune_kalman(
     sigma: &[f64],
     estimated: &[bool],
     data: &TestData,
+    previous: Option<&KalmanTuning>,
 ) -> Result<KalmanTuning, EstimateError> {
     use crate::estimate::tuning::maximise_log_parallel as maximise_log;
     let with_terms = model.with_connection_terms(setup, params);
@@ -723,12 +748,67 @@ pub fn tune_kalman(
     let likelihood = |s: f64, w: f64, e: f64| {
         kalman_log_likelihood(setup, &with_terms, params, opts, &scaled(s), data, w, e)
     };
+    let tunes_scale = opts.tune_noise_scale && estimated.iter().any(|&e| e);
+    if let Some(prev) = previous {
+        let mut noise_scale = prev.noise_scale;
+        let error_taken = opts.model_error_std.is_none() && prev.model_error_taken;
+        if error_taken {
+            model_error = prev.model_error_std;
+        }
+        let reach = 10f64.powf(RETUNE_WALK_DECADES);
+        let grid = 2 * RETUNE_WALK_DECADES.round() as usize + 1;
+        let w0 = prev.force_walk_std;
+        let (mut walk, mut ll, n) = maximise_log(w0 / reach, w0 * reach, grid, 10, &|w| {
+            likelihood(noise_scale, w, model_error)
+        });
+        runs += n;
+        let mut moved = false;
+        if tunes_scale {
+            let (s, l, n) = maximise_log(noise_scale / 30.0, noise_scale * 30.0, 5, 8, &|s| {
+                likelihood(s, walk, model_error)
+            });
+            runs += n;
+            if l > ll {
+                moved |= l > ll + RETUNE_SIGNIFICANT_GAIN;
+                (noise_scale, ll) = (s, l);
+            }
+        }
+        if error_taken {
+            let (e, l, n) = maximise_log(model_error / 30.0, model_error * 30.0, 5, 8, &|e| {
+                likelihood(noise_scale, walk, e)
+            });
+            runs += n;
+            if l > ll {
+                moved |= l > ll + RETUNE_SIGNIFICANT_GAIN;
+                (model_error, ll) = (e, l);
+            }
+        }
+        if moved {
+            let (w, l, n) = maximise_log(walk / 30.0, walk * 30.0, 5, 8, &|w| {
+                likelihood(noise_scale, w, model_error)
+            });
+            runs += n;
+            if l > ll {
+                (walk, ll) = (w, l);
+            }
+        }
+        return Ok(KalmanTuning {
+            model_error_std: model_error,
+            force_walk_std: walk,
+            noise_scale,
+            sigma: scaled(noise_scale),
+            log_likelihood: ll,
+            runs,
+            model_error_taken: error_taken,
+        });
+    }
     let mut noise_scale = 1.0;
+    let mut model_error_taken = false;
     let (mut walk, mut ll, n) = maximise_log(1e-6 * scale, 1e2 * scale, 9, 12, &|w| {
         likelihood(noise_scale, w, model_error)
     });
     runs += n;
-    if opts.tune_noise_scale && estimated.iter().any(|&e| e) {
+    if tunes_scale {
         let (s, l, n) = maximise_log(1e-8, 1e1, 10, 10, &|s| likelihood(s, walk, model_error));
         runs += n;
         if l > ll {
@@ -751,8 +831,9 @@ pub fn tune_kalman(
         runs += n;
         if l > ll {
             model_error = e;
+            model_error_taken = true;
             ll = l;
-            if opts.tune_noise_scale && estimated.iter().any(|&e| e) {
+            if tunes_scale {
                 let (s, l, n) = maximise_log(noise_scale / 30.0, noise_scale * 30.0, 5, 8, &|s| {
                     likelihood(s, walk, model_error)
                 });
@@ -779,6 +860,7 @@ pub fn tune_kalman(
         sigma: scaled(noise_scale),
         log_likelihood: ll,
         runs,
+        model_error_taken,
     })
 }
 
@@ -1192,6 +1274,7 @@ fn identify_once(
     let mut state = PassState {
         params,
         frozen: None,
+        last_tuning: None,
         tunings: 0,
     };
     // A long record whose answer the prediction error gives: the passes converge on its
@@ -1351,6 +1434,8 @@ struct PassState {
     params: Vec<f64>,
     /// The Kalman tuning once it is frozen.
     frozen: Option<KalmanTuning>,
+    /// The last tuning made (a re-tune starts its search there, see [`tune_kalman`]).
+    last_tuning: Option<KalmanTuning>,
     /// Tunings so far.
     tunings: usize,
 }
@@ -1434,6 +1519,7 @@ fn run_passes(
             pass,
             truth,
             state.frozen.as_ref(),
+            state.last_tuning.as_ref(),
             &mut |o| on_sample(pass, o),
         );
         crate::par::phase("pass (with any tuning)", t0);
@@ -1448,6 +1534,7 @@ fn run_passes(
                 }
                 if state.frozen.is_none() && tuned.is_some() {
                     state.tunings += 1;
+                    state.last_tuning.clone_from(&tuned);
                     let settled = result
                         .passes
                         .last()
@@ -1797,7 +1884,12 @@ fn finish_with_output_error(
                             Some(lr) => format!(
                                 "the innovations reject that level (likelihood-ratio statistic {lr:.1})"
                             ),
-                            None => "its standard error is the start's".into(),
+                            None => match r.refined.get(j) {
+                                Some(x) if *x > 0.0 => format!(
+                                    "the descent ended at {x:.4e} and the shifts removed from the answer (the bootstrap's mean, the noise's through the observer) took it to 0; its standard error includes them"
+                                ),
+                                _ => "its standard error is the start's".into(),
+                            },
                         };
                         result.notes.push(format!(
                             "`{}` ended on its bound 0: no friction detected (the start gave {:.4e} ± {:.3e}); {test}",
@@ -2401,6 +2493,7 @@ fn run_pass(
     pass: usize,
     truth: Option<&[f64]>,
     frozen: Option<&KalmanTuning>,
+    previous: Option<&KalmanTuning>,
     on_sample: &mut dyn FnMut(&StepOutput),
 ) -> Result<PassOutcome, IdentifyError> {
     // The model's Newmark sub-steps per sample: reported because continuous-time data are
@@ -2419,7 +2512,7 @@ fn run_pass(
             }
             None => {
                 let t0 = std::time::Instant::now();
-                let t = tune_kalman(setup, model, params, opts, sigma, estimated, data)?;
+                let t = tune_kalman(setup, model, params, opts, sigma, estimated, data, previous)?;
                 crate::par::phase("kalman tuning", t0);
                 t
             }

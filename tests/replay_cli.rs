@@ -1069,10 +1069,13 @@ fn a_sine_test_with_friction_is_bootstrapped_to_its_measured_errors() {
 /// A random test whose excitation is weak against the friction (3,000 N RMS on the shipped
 /// friction setup instead of 20,000; continuous 64-sub-step data, 1 % noise): the sandwich
 /// errors depend on their secant (the innovations are not linear in the parameters over
-/// their errors) and are too small — `sign(u)` ended 7.3 of them off on this seed — so the
+/// their errors) and are too small — `sign(u)` ended 3.6 of them off on this seed — so the
 /// parametric bootstrap runs by itself and the answer holds the truth within 2 of its
 /// errors; `--bootstrap 0` gives the sandwich's answer back with a note that says what
-/// such errors covered (ACCURACY.md, twentieth session).
+/// such errors covered (ACCURACY.md, twentieth session). Seed 820 since 2026-11-29: on
+/// seed 812 (used until then, 7.3 errors off without the bootstrap) the passes' re-tune
+/// made from the first tuning (`identify::tune_kalman`) gives a start from which the
+/// sandwich's answer is 1.6 errors off, and the seed no longer shows the weakness.
 #[test]
 fn a_weak_excitation_against_the_friction_is_bootstrapped() {
     let dir = tempfile::tempdir().unwrap();
@@ -1080,7 +1083,7 @@ fn a_weak_excitation_against_the_friction_is_bootstrapped() {
     let rec = simulate_with(
         dir.path(),
         &setup,
-        "812",
+        "820",
         &["--amplitude", "3000", "--substeps", "64"],
     );
     let rec = rec.to_str().unwrap();
@@ -1098,7 +1101,7 @@ fn a_weak_excitation_against_the_friction_is_bootstrapped() {
         "{}",
         pe["bootstrap"]
     );
-    assert_within(&boot, "812, bootstrapped", 2.0);
+    assert_within(&boot, "820, bootstrapped", 2.0);
     // Without it the friction is confidently wrong: the reason the bootstrap runs.
     let off = |v: &serde_json::Value| {
         let p = &v["parameters"][0];

@@ -810,7 +810,9 @@ fn online_estimator(
     check_observability(setup, &model, &opts)?;
     let mut sigma = sigma.to_vec();
     if tune && kind == EstimatorKind::Kalman && opts.force_walk_std.is_none() && warmup.len() >= 3 {
-        let t = tune_kalman(setup, &model, params, &opts, &sigma, estimated, warmup)?;
+        let t = tune_kalman(
+            setup, &model, params, &opts, &sigma, estimated, warmup, None,
+        )?;
         opts.force_walk_std = Some(t.force_walk_std);
         opts.model_error_std = Some(t.model_error_std);
         sigma = t.sigma;
