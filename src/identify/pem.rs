@@ -963,6 +963,7 @@ mod tests {
         assert!(pem_undetermined(&setup, &interior, &start, &start_se).is_none());
         let mut at_bound = interior.clone();
         at_bound.values[f] = 0.0;
+        at_bound.refined[f] = 0.0;
         // The passes had found the friction (10 se above 0): the observer absorbed it.
         let why = pem_undetermined(&setup, &at_bound, &start, &start_se).unwrap();
         assert!(why.contains("bound 0"), "{why}");
