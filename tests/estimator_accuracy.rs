@@ -388,7 +388,11 @@ fn a_long_record_of_finely_integrated_data_is_refined_at_its_level() {
 /// on over the whole record to their tolerance. Here the model misfits the data (the beams'
 /// EI 10 % stiff: the prediction error's cost is 21× the noise variance and it is not
 /// used), 25,000 samples: the passes after the first whole-record one must run, and the
-/// last must have moved less than the tolerance.
+/// last must have moved less than the tolerance. Seed 2 since 2026-11-29 (seed 5 before):
+/// from the passes' re-tune searched near the first tuning, seeds 1 and 5 of this misfit
+/// pass the prediction error's start-in-motion test (the note says a misfit can) and are
+/// identified again with the start state estimated, a path without the prefix; seeds 2, 3,
+/// 4, 6 and 7 take the one tested here.
 #[test]
 fn a_long_record_whose_refinement_is_not_used_has_its_passes_converged_over_all_of_it() {
     let truth_setup = shipped_friction_setup();
@@ -399,7 +403,7 @@ fn a_long_record_whose_refinement_is_not_used_has_its_passes_converged_over_all_
         .unwrap()
         .replace("ei = 1.0e5", "ei = 1.1e5");
     let misfit = Setup::from_toml(&text, "misfit EI").unwrap();
-    let id = run_with(&truth_setup, &misfit, 25_000, 1, Noise::Additive(0.01), 5);
+    let id = run_with(&truth_setup, &misfit, 25_000, 1, Noise::Additive(0.01), 2);
     let opts = IdentifyOptions::from_setup(&misfit);
     assert!(
         id.notes.iter().any(|n| n.contains("refinement not used")),
@@ -414,7 +418,12 @@ fn a_long_record_whose_refinement_is_not_used_has_its_passes_converged_over_all_
                 .and_then(|rest| rest.split(' ').next())
                 .and_then(|k| k.parse::<usize>().ok())
         })
-        .expect("the passes started on the record's prefix");
+        .unwrap_or_else(|| {
+            panic!(
+                "the passes started on the record's prefix: {} / {:?}",
+                id.stop_reason, id.notes
+            )
+        });
     assert!(
         id.passes.len() >= on_prefix + 2,
         "{} passes, {on_prefix} on the prefix",
