@@ -501,7 +501,13 @@ impl ExternalModel {
         let stiffness = parse_matrix(&files.stiffness, stiffness)?;
         let damping = match (&files.damping, damping) {
             (Some(text), Some(path)) => Some(parse_matrix(text, path)?),
-            (Some(text), None) => Some(parse_matrix(text, Path::new("damping"))?),
+            // A damping matrix the setup does not name would change the model unasked.
+            (Some(_), None) => {
+                return Err(MatrixMarketError::Matrix {
+                    path: dof_map.to_path_buf(),
+                    message: "the model's files include a damping matrix the setup does not name (model.matrix_market.damping)".into(),
+                });
+            }
             (None, Some(path)) => {
                 return Err(MatrixMarketError::Matrix {
                     path: path.to_path_buf(),
@@ -752,6 +758,39 @@ mod tests {
 
     fn p() -> &'static Path {
         Path::new("k.mtx")
+    }
+
+    /// Files and setup must agree on the damping matrix: one the setup does not name, or
+    /// one it names that the files lack, is an error naming it; agreeing files load.
+    #[test]
+    fn model_files_and_the_setup_agree_on_the_damping() {
+        let one = "%%MatrixMarket matrix coordinate real symmetric\n1 1 1\n1 1 2.5\n";
+        let files = ModelFiles {
+            mass: one.into(),
+            stiffness: one.into(),
+            damping: Some(one.into()),
+            dof_map: "node,direction,row\n1,w,1\n".into(),
+        };
+        let (m, k, d, map) = (
+            Path::new("m"),
+            Path::new("k"),
+            Path::new("c"),
+            Path::new("dofs"),
+        );
+        let ok = ExternalModel::from_files(files.clone(), m, k, Some(d), map).unwrap();
+        assert_eq!(ok.damping.unwrap().to_dense()[(0, 0)], 2.5);
+        let e = ExternalModel::from_files(files.clone(), m, k, None, map).unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("damping matrix the setup does not name"),
+            "{e}"
+        );
+        let none = ModelFiles {
+            damping: None,
+            ..files
+        };
+        let e = ExternalModel::from_files(none, m, k, Some(d), map).unwrap_err();
+        assert!(e.to_string().contains("named by the setup"), "{e}");
     }
 
     #[test]
