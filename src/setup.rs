@@ -36,6 +36,14 @@ pub enum SetupError {
         origin: String,
         error: crate::matrix_market::MatrixMarketError,
     },
+    /// The model's files a recording carries (its attachments), not the files on disk.
+    #[error(
+        "setup {origin}: model.matrix_market: {error} (the model's files the recording carries; give `--setup` to use files on disk instead)"
+    )]
+    AttachedModel {
+        origin: String,
+        error: crate::matrix_market::MatrixMarketError,
+    },
     #[error("setup {origin}: {key}: {message}")]
     Invalid {
         origin: String,
@@ -929,19 +937,37 @@ fn validate(
                     &stiffness,
                     damping.as_deref(),
                     &dof_map,
-                ),
-                Some(f) => crate::matrix_market::ExternalModel::from_files(
-                    f.clone(),
-                    &mass,
-                    &stiffness,
-                    damping.as_deref(),
-                    &dof_map,
-                ),
-            }
-            .map_err(|error| SetupError::MatrixMarket {
-                origin: origin.to_string(),
-                error,
-            })?;
+                )
+                .map_err(|error| SetupError::MatrixMarket {
+                    origin: origin.to_string(),
+                    error,
+                }),
+                // Files a recording carries: messages name the attachment (the paths beside
+                // the recording were not read).
+                Some(f) => {
+                    let named = |key: &str, p: &Path| {
+                        PathBuf::from(format!(
+                            "attachment {}{key} ({})",
+                            crate::io::mcap::MODEL_FILE_ATTACHMENT_PREFIX,
+                            p.display()
+                        ))
+                    };
+                    crate::matrix_market::ExternalModel::from_files(
+                        f.clone(),
+                        &named("mass", &mm.mass),
+                        &named("stiffness", &mm.stiffness),
+                        mm.damping
+                            .as_deref()
+                            .map(|d| named("damping", d))
+                            .as_deref(),
+                        &named("dof_map", &mm.dof_map),
+                    )
+                    .map_err(|error| SetupError::AttachedModel {
+                        origin: origin.to_string(),
+                        error,
+                    })
+                }
+            }?;
             Some(std::sync::Arc::new(ext))
         }
     };
@@ -1514,5 +1540,39 @@ dt_s = 0.01
         assert_eq!(Basis::Gap(0.1).eval(0.3, 0.0, 0.0), 0.3 - 0.1);
         assert_eq!(Basis::Gap(0.1).eval(0.05, 0.0, 0.0), 0.0);
         assert_eq!(Basis::U3.eval(2.0, 0.0, 0.0), 8.0);
+    }
+
+    /// A setup whose model files come from a recording: a parse error names the attachment
+    /// (not a path beside the recording, which was never read) and says how to use files on
+    /// disk; the same text read from disk names the file.
+    #[test]
+    fn a_bad_attached_model_file_is_named_as_the_attachment() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("recordings/two-beam-mm");
+        let origin = dir.join("setup.toml");
+        let text = std::fs::read_to_string(&origin).unwrap();
+        let setup = Setup::from_toml(&text, &origin.display().to_string()).unwrap();
+        let mut files = setup.model_files().unwrap().clone();
+        let fine = Setup::from_toml_with_model_files(
+            &text,
+            "rec.mcap (attached setup.toml)",
+            Some(&files),
+        );
+        assert!(fine.is_ok(), "{:?}", fine.err());
+        files.stiffness = files
+            .stiffness
+            .replacen("%%MatrixMarket", "%%MatrixMarkt", 1);
+        let e = Setup::from_toml_with_model_files(
+            &text,
+            "rec.mcap (attached setup.toml)",
+            Some(&files),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("attachment model.matrix_market.stiffness (stiffness.mtx)")
+                && e.contains("the recording carries")
+                && !e.contains("relative to"),
+            "{e}"
+        );
     }
 }
