@@ -749,6 +749,11 @@ pub fn tune_kalman(
         kalman_log_likelihood(setup, &with_terms, params, opts, &scaled(s), data, w, e)
     };
     let tunes_scale = opts.tune_noise_scale && estimated.iter().any(|&e| e);
+    // A search within a factor of 30 either way of a value already found (half-decade grid of
+    // five points, then at most `refine` steps of Brent's method).
+    let around = |x: f64, refine: usize, f: &(dyn Fn(f64) -> f64 + Sync)| {
+        maximise_log(x / 30.0, x * 30.0, 5, refine, f)
+    };
     if let Some(prev) = previous {
         let mut noise_scale = prev.noise_scale;
         let error_taken = opts.model_error_std.is_none() && prev.model_error_taken;
@@ -764,9 +769,7 @@ pub fn tune_kalman(
         runs += n;
         let mut moved = false;
         if tunes_scale {
-            let (s, l, n) = maximise_log(noise_scale / 30.0, noise_scale * 30.0, 5, 8, &|s| {
-                likelihood(s, walk, model_error)
-            });
+            let (s, l, n) = around(noise_scale, 8, &|s| likelihood(s, walk, model_error));
             runs += n;
             if l > ll {
                 moved |= l > ll + RETUNE_SIGNIFICANT_GAIN;
@@ -774,9 +777,7 @@ pub fn tune_kalman(
             }
         }
         if error_taken {
-            let (e, l, n) = maximise_log(model_error / 30.0, model_error * 30.0, 5, 8, &|e| {
-                likelihood(noise_scale, walk, e)
-            });
+            let (e, l, n) = around(model_error, 8, &|e| likelihood(noise_scale, walk, e));
             runs += n;
             if l > ll {
                 moved |= l > ll + RETUNE_SIGNIFICANT_GAIN;
@@ -784,9 +785,7 @@ pub fn tune_kalman(
             }
         }
         if moved {
-            let (w, l, n) = maximise_log(walk / 30.0, walk * 30.0, 5, 8, &|w| {
-                likelihood(noise_scale, w, model_error)
-            });
+            let (w, l, n) = around(walk, 8, &|w| likelihood(noise_scale, w, model_error));
             runs += n;
             if l > ll {
                 (walk, ll) = (w, l);
@@ -814,9 +813,7 @@ pub fn tune_kalman(
         if l > ll {
             noise_scale = s;
             ll = l;
-            let (w, l, n) = maximise_log(walk / 30.0, walk * 30.0, 5, 10, &|w| {
-                likelihood(noise_scale, w, model_error)
-            });
+            let (w, l, n) = around(walk, 10, &|w| likelihood(noise_scale, w, model_error));
             runs += n;
             if l > ll {
                 walk = w;
@@ -834,18 +831,14 @@ pub fn tune_kalman(
             model_error_taken = true;
             ll = l;
             if tunes_scale {
-                let (s, l, n) = maximise_log(noise_scale / 30.0, noise_scale * 30.0, 5, 8, &|s| {
-                    likelihood(s, walk, model_error)
-                });
+                let (s, l, n) = around(noise_scale, 8, &|s| likelihood(s, walk, model_error));
                 runs += n;
                 if l > ll {
                     noise_scale = s;
                     ll = l;
                 }
             }
-            let (w, l, n) = maximise_log(walk / 30.0, walk * 30.0, 5, 8, &|w| {
-                likelihood(noise_scale, w, model_error)
-            });
+            let (w, l, n) = around(walk, 8, &|w| likelihood(noise_scale, w, model_error));
             runs += n;
             if l > ll {
                 walk = w;
