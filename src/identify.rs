@@ -1768,6 +1768,19 @@ fn noise_shift_note(keys: &[String], shift: &[f64], std_errors: &[f64]) -> Strin
     )
 }
 
+/// The refinement's scale per parameter from a start and its standard errors: the error,
+/// at least 1e-6 of the value (1e-6 when neither is usable).
+fn start_scales(values: &[f64], errors: &[f64]) -> Vec<f64> {
+    values
+        .iter()
+        .zip(errors)
+        .map(|(v, e)| {
+            let s = e.abs().max(1e-6 * v.abs());
+            if s.is_finite() && s > 0.0 { s } else { 1e-6 }
+        })
+        .collect()
+}
+
 /// After the passes: the Cramér–Rao bound of every parameter and, when enabled, the
 /// output-error refinement (see `estimate::output_error`). Either failing leaves the
 /// residual-force estimate in place with a note.
@@ -1783,6 +1796,16 @@ fn finish_with_output_error(
     if !(opts.crlb || opts.output_error) {
         return;
     }
+    // Passes that did not converge: the first pass's answer is offered to the prediction
+    // error as another start (`pem::PemStage::Refined`: the likelier is taken).
+    let first_answer: Option<(Vec<f64>, Vec<f64>)> =
+        (!result.converged && result.passes.len() >= 2 && opts.prior.is_none()).then(|| {
+            result.passes[0]
+                .parameters
+                .iter()
+                .map(|p| (p.value, p.std_error))
+                .unzip()
+        });
     let Some(last) = result.passes.last_mut() else {
         return;
     };
@@ -1811,7 +1834,7 @@ fn finish_with_output_error(
         return;
     }
     let prior = opts.prior.as_ref().and_then(|p| p.for_setup(setup));
-    let (values, errors): (Vec<f64>, Vec<f64>) = match prior {
+    let (mut values, errors): (Vec<f64>, Vec<f64>) = match prior {
         Some(p) => {
             result.notes.push(format!(
                 "the refinement started from {} (not from this record's residual-force estimate)",
@@ -1825,28 +1848,44 @@ fn finish_with_output_error(
             .map(|p| (p.value, p.std_error))
             .unzip(),
     };
-    let scales: Vec<f64> = values
-        .iter()
-        .zip(&errors)
-        .map(|(v, e)| {
-            let s = e.abs().max(1e-6 * v.abs());
-            if s.is_finite() && s > 0.0 { s } else { 1e-6 }
-        })
-        .collect();
+    let mut scales = start_scales(&values, &errors);
     let (exc, resp) = (&data.excitation, &data.response);
     let sign_u = has_sign_u_basis(setup);
     if opts.output_error && sign_u {
         let t0 = std::time::Instant::now();
-        let refined =
-            match refine_by_prediction_error(setup, model, data, opts, sigma, &values, &scales) {
-                Ok(PemStage::Refined(r, raised)) => Ok((*r, raised)),
-                // `identify` runs again with the record treated as in motion.
-                Ok(PemStage::InMotion(m)) => {
-                    result.motion_in_record = Some(m);
-                    return;
+        let first_scales = first_answer.as_ref().map(|(v, e)| start_scales(v, e));
+        let other_start = first_answer
+            .as_ref()
+            .zip(first_scales.as_ref())
+            .map(|((v, _), s)| (v.as_slice(), s.as_slice()));
+        let refined = match refine_by_prediction_error(
+            setup,
+            model,
+            data,
+            opts,
+            sigma,
+            &values,
+            &scales,
+            other_start,
+        ) {
+            Ok(PemStage::Refined(r, raised, other_gain)) => {
+                if let (Some(gain), Some((v, _)), Some(s)) =
+                    (other_gain, first_answer.as_ref(), first_scales.as_ref())
+                {
+                    result.notes.push(format!(
+                            "the passes did not converge: the prediction error started from the first pass's answer, likelier than the last pass's by {gain:.1} in log-likelihood (observer tuned at {raised} sub-steps)"
+                        ));
+                    (values, scales) = (v.clone(), s.clone());
                 }
-                Err(e) => Err(e),
-            };
+                Ok((*r, raised))
+            }
+            // `identify` runs again with the record treated as in motion.
+            Ok(PemStage::InMotion(m)) => {
+                result.motion_in_record = Some(m);
+                return;
+            }
+            Err(e) => Err(e),
+        };
         crate::par::phase("prediction error (all)", t0);
         match refined {
             Ok((r, raised)) if r.report.cost_end > PEM_MAX_COST => {
