@@ -1864,8 +1864,7 @@ fn finish_with_output_error(
             data,
             opts,
             sigma,
-            &values,
-            &scales,
+            (&values, &scales),
             other_start,
         ) {
             Ok(PemStage::Refined(r, raised, other_gain)) => {

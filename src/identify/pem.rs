@@ -381,8 +381,7 @@ pub(super) fn refine_by_prediction_error<'a>(
     data: &TestData,
     opts: &IdentifyOptions,
     sigma: &[f64],
-    start: &'a [f64],
-    scales: &'a [f64],
+    (start, scales): (&'a [f64], &'a [f64]),
     other_start: Option<(&'a [f64], &'a [f64])>,
 ) -> Result<PemStage, crate::simulate::SimulateError> {
     use crate::estimate::prediction_error::refine;
