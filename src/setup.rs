@@ -1542,9 +1542,10 @@ dt_s = 0.01
         assert_eq!(Basis::U3.eval(2.0, 0.0, 0.0), 8.0);
     }
 
-    /// A setup whose model files come from a recording: a parse error names the attachment
-    /// (not a path beside the recording, which was never read) and says how to use files on
-    /// disk; the same text read from disk names the file.
+    /// A setup whose model files come from a recording: the intact files load, and a parse
+    /// error names the attachment (not a path beside the recording, which was never read),
+    /// says how to use files on disk, and drops the hint about relative paths, which is for
+    /// files read from disk.
     #[test]
     fn a_bad_attached_model_file_is_named_as_the_attachment() {
         let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("recordings/two-beam-mm");
