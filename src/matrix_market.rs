@@ -48,6 +48,9 @@ pub enum MatrixMarketError {
     },
     #[error("{path}: {message}")]
     Matrix { path: PathBuf, message: String },
+    /// The files disagree with the setup as a set (no one file is at fault).
+    #[error("{message}")]
+    Files { message: String },
 }
 
 /// A real sparse matrix read from a file: `(row, col, value)` triplets, 0-based, duplicates
@@ -503,9 +506,8 @@ impl ExternalModel {
             (Some(text), Some(path)) => Some(parse_matrix(text, path)?),
             // A damping matrix the setup does not name would change the model unasked.
             (Some(_), None) => {
-                return Err(MatrixMarketError::Matrix {
-                    path: dof_map.to_path_buf(),
-                    message: "the model's files include a damping matrix the setup does not name (model.matrix_market.damping)".into(),
+                return Err(MatrixMarketError::Files {
+                    message: "the model's files include a damping matrix the setup does not name (name it as model.matrix_market.damping to use it)".into(),
                 });
             }
             (None, Some(path)) => {
@@ -785,6 +787,8 @@ mod tests {
                 .contains("damping matrix the setup does not name"),
             "{e}"
         );
+        // No one file is at fault: the message names none (it used to name the DOF map).
+        assert!(!e.to_string().contains("dofs"), "{e}");
         let none = ModelFiles {
             damping: None,
             ..files
