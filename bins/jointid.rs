@@ -11,6 +11,7 @@ use jointid::app::{self, Progress, ReplayOutcome, ReplayRequest};
 use std::sync::Arc;
 
 use jointid::io::FrameEncoding;
+use jointid::io::output::{check_output_dir, check_output_file};
 use jointid::io::shm::ShmOptions;
 use jointid::pipeline::live::{self, LiveOptions, LiveReport};
 use jointid::setup::{EstimatorKind, Setup};
@@ -280,6 +281,12 @@ fn main() -> ExitCode {
 fn run(cli: Cli) -> Result<ExitCode> {
     match cli.command {
         Command::ExportMm { setup, out } => {
+            check_output_dir(
+                "--out",
+                &out,
+                jointid::matrix_market::EXPORT_FILES,
+                &[&setup],
+            )?;
             let s = Setup::from_file(&setup)?;
             let sum = jointid::matrix_market::export(&s, &out)
                 .with_context(|| format!("exporting {}", setup.display()))?;
@@ -303,6 +310,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             pulse,
             encoding,
         } => {
+            check_output_file("--out", &out, &[&setup])?;
             let s = Setup::from_file(&setup)?;
             let dt_s = dt.unwrap_or(s.dt_s);
             let (sc, name) = match scenario {
@@ -452,6 +460,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             encoding,
             json,
         } => {
+            check_output_file("--out", &out, &[&csv, &setup])?;
             let s = Setup::from_file(&setup)?;
             let delimiter = match delimiter {
                 None => None,
@@ -506,6 +515,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
             tune_warmup,
             json,
         } => {
+            if let Some(r) = &record {
+                check_output_file("--record", r, &[&setup])?;
+            }
             let s = Setup::from_file(&setup)?;
             let shm = ShmOptions {
                 session,

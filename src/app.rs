@@ -69,6 +69,8 @@ pub enum AppError {
         option: &'static str,
         reason: String,
     },
+    #[error(transparent)]
+    OutputPath(#[from] crate::io::output::OutputPathError),
 }
 
 fn channel_info(names: impl Iterator<Item = (String, String)>) -> ChannelInfo {

@@ -660,6 +660,15 @@ pub enum ExportError {
     Toml(String),
 }
 
+/// The files [`export`] may write into its directory.
+pub const EXPORT_FILES: &[&str] = &[
+    "mass.mtx",
+    "stiffness.mtx",
+    "damping.mtx",
+    "dofs.csv",
+    "setup.toml",
+];
+
 /// What [`export`] wrote.
 #[derive(Debug, Clone)]
 pub struct ExportSummary {

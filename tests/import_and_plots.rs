@@ -229,6 +229,69 @@ fn csv_without_time_column_semicolons_and_bad_values_are_handled() {
     assert!(err.contains("line 5") && err.contains("even grid"), "{err}");
 }
 
+/// Mistakes a new user made (a reviewer's walk through the README): a time column in
+/// milliseconds was taken as a 1000× slower rate and the replay identified nonsense at exit
+/// 0; `--out` naming the input CSV replaced the measured data with a recording. Both are
+/// refused now, and the input is left as it was.
+#[test]
+fn a_time_column_in_milliseconds_and_an_output_over_the_input_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let setup = repo("recordings/two-beam-spring.toml");
+    let setup = setup.to_str().unwrap();
+    let sim = simulate_spring(dir.path(), 50, 5);
+    let csv = dir.path().join("ms.csv");
+    recording_to_csv(&sim, &csv, 0.0, true, ',');
+    // The same file with its time column in milliseconds.
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let ms: Vec<String> = text
+        .lines()
+        .map(|l| match l.split_once(',') {
+            Some((t, rest)) if t.parse::<f64>().is_ok() => {
+                format!("{:?},{rest}", t.parse::<f64>().unwrap() * 1e3)
+            }
+            _ => l.to_string(),
+        })
+        .collect();
+    std::fs::write(&csv, ms.join("\n")).unwrap();
+    let out = dir.path().join("ms.mcap");
+    let o = run(&[
+        "import",
+        csv.to_str().unwrap(),
+        "--setup",
+        setup,
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("ms.csv") && err.contains("1000.0000×") && err.contains("seconds"),
+        "{err}"
+    );
+    assert!(!out.exists(), "no recording from a refused file");
+
+    let before = std::fs::read(&csv).unwrap();
+    let o = run(&[
+        "import",
+        csv.to_str().unwrap(),
+        "--setup",
+        setup,
+        "--out",
+        csv.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("--out") && err.contains("is the input"),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read(&csv).unwrap(),
+        before,
+        "the input is untouched"
+    );
+}
+
 /// The README's starter setup ("Your data → parameters → plots", step 1) is a working
 /// setup: with a `truth` added, a test simulated from it is identified to its truth.
 /// Why: a reviewer following the README found its snippet refused (a beam without its

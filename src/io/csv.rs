@@ -14,7 +14,8 @@
 //!   the first. Without a time column, samples are `dt_s` apart (the setup's, or `--dt`).
 //! - When the file's interval differs from the setup's `dt_s`, the attached setup gets the
 //!   file's interval (the replay discretises the model at the data's rate); the summary says
-//!   so.
+//!   so. A time column whose interval is 10× the setup's or more (or a tenth or less) is
+//!   refused: that is a unit slip (milliseconds), not a model made for another rate.
 //!
 //! Every value must parse as a finite number; an error names the file, the line and the
 //! column. The recording is written to `<out>.partial` and renamed only when complete, so a
@@ -258,6 +259,20 @@ pub fn import_csv(
                 });
             }
             let name = time.map(|c| header[c].clone()).unwrap_or_default();
+            // A factor of ten or more from the setup's step is a unit slip (a column in
+            // milliseconds is 1000×), not a model made for another rate: refused, as its
+            // replay would identify nonsense at exit 0.
+            let ratio = dt / setup.dt_s;
+            if !(0.1..10.0).contains(&ratio) {
+                return Err(ImportError::BadTime {
+                    path: path.clone(),
+                    line: second.line,
+                    what: format!(
+                        "the time column {name:?} gives a sample interval of {dt:e} s, {ratio:.4}× the setup's dt_s = {:e} s: the column must be in seconds (one in milliseconds gives 1000×); if the data really are at this rate, set the setup's dt_s to it",
+                        setup.dt_s
+                    ),
+                });
+            }
             (dt, format!("time column {name:?}"))
         }
         _ => match opts.dt_s {

@@ -523,6 +523,15 @@ impl RecordingWriter {
         options: WriteOptions,
     ) -> Result<Self, McapIoError> {
         let partial = partial_path(path);
+        // A missing directory is the output's problem, not the temporary file's.
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty())
+            && !dir.is_dir()
+        {
+            return Err(io_error(path)(std::io::Error::new(
+                std::io::ErrorKind::NotFound,
+                format!("the directory {} does not exist", dir.display()),
+            )));
+        }
         let file = File::create(&partial).map_err(io_error(&partial))?;
         let writer = options
             .create(BufWriter::new(file))

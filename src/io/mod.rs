@@ -4,6 +4,7 @@
 pub mod contract;
 pub mod csv;
 pub mod mcap;
+pub mod output;
 pub mod shm;
 
 pub use self::mcap::{Frame, FrameEncoding};

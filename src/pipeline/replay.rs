@@ -428,6 +428,16 @@ pub fn run(
     progress: &mut dyn FnMut(Progress<'_>),
 ) -> Result<ReplayOutcome, AppError> {
     let path = req.recording.clone();
+    // Where the outputs go is checked before the work: an output that is an input, or in a
+    // directory that does not exist, would fail (or replace the input) only at the end.
+    let mut inputs: Vec<&Path> = vec![&path];
+    inputs.extend(req.setup.as_deref());
+    if let Some(out) = &req.out {
+        crate::io::output::check_output_file("--out", out, &inputs)?;
+    }
+    if let Some(dir) = &req.plots {
+        crate::io::output::check_output_dir("--plots", dir, &[], &inputs)?;
+    }
     let stream = stream_frames(&path)?;
     let header = stream.header.clone();
     let setup = replay_setup(req.setup.as_deref(), &header, &path)?;
