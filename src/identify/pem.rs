@@ -65,9 +65,10 @@ const PEM_TUNE_RANGE: [f64; 2] = [1e-2, 1e3];
 /// How [`tune_pem_force`] searches the observer force.
 #[derive(Debug, Clone, Copy)]
 enum ForceSearch {
-    /// Over [`PEM_TUNE_RANGE`]: decade grid, 2 steps of Brent's method — enough to compare the
-    /// likelihoods of the sub-step levels (they differ by far more than what a finer search
-    /// gains), at 8 runs instead of 17 per level.
+    /// Over [`PEM_TUNE_RANGE`]: decade grid, 2 steps of Brent's method — the observer the
+    /// sub-step levels are compared with (their likelihoods differ by far more than what a
+    /// finer search gains), 8 runs instead of 17; then the start of the chosen level's
+    /// [`ForceSearch::Near`].
     Coarse,
     /// ± [`NEAR_DECADES`] around a force already found, half-decade grid, at most 6 Brent steps
     /// (not positive or not finite: over the whole range, half-decade grid).
@@ -176,17 +177,10 @@ fn tune_pem_force(
         ForceSearch::Coarse => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 6, 2),
         ForceSearch::Near(_) => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 11, 6),
     };
-    // The near search runs alone (after the level choice): its grid on both cores (the same
-    // points and comparisons, so the same answer). The coarse searches already run one level
-    // per core.
-    let (force, ll, _) = match search {
-        ForceSearch::Near(_) => {
-            crate::estimate::tuning::maximise_log_parallel(lo, hi, grid, refine, &loglik)
-        }
-        ForceSearch::Coarse => {
-            crate::estimate::tuning::maximise_log(lo, hi, grid, refine, &mut |f| loglik(f))
-        }
-    };
+    // Each search runs alone: its grid on both cores (the same points and comparisons, so
+    // the same answer).
+    let (force, ll, _) =
+        crate::estimate::tuning::maximise_log_parallel(lo, hi, grid, refine, &loglik);
     (force, ll)
 }
 
@@ -366,10 +360,20 @@ fn start_motion(
 
 /// Prediction-error refinement for laws with a `sign(u)` term (see
 /// `estimate::prediction_error`), from the residual-force estimate. The model sub-steps are
-/// chosen first, at the start values: the tuned innovation likelihood at every level from
-/// the setup's, doubling, up to [`MAX_PEM_LEVEL`]; the coarsest
-/// level within 3 standard deviations (`1.5√(2Nm)`) of the likeliest is kept; then one
-/// refinement at that level. Returns the result and the sub-steps used.
+/// chosen first, at the start values: the innovation likelihood at every level from the
+/// setup's, doubling, up to [`MAX_PEM_LEVEL`], each with the observer whose force was tuned
+/// at the setup's level; the coarsest level within 3 standard deviations (`1.5√(2Nm)`) of
+/// the likeliest is kept, its own observer force tuned; then one refinement at that level.
+/// Returns the result and the sub-steps used.
+///
+/// Why one observer for the comparison (since the twenty-sixth session; before, each level
+/// had its force tuned, 8 runs per level, 7 levels): the comparison is then between model
+/// structures under the same observer, itself a likelihood comparison, and the levels of
+/// the sweeps' data differ by thousands to hundreds of thousands in log-likelihood where
+/// the rule's margin is a few hundred. Measured: on 900 paired records (friction and
+/// spring setups, seeds 4001–4025, data sub-steps 1, 8, 64, noise 1, 10, 100 %) every
+/// answer was the same to the printed digits as with a force tuned per level, and the
+/// level choice's runs went from 56 to 14–22 (BENCHMARKS.md, twenty-sixth session).
 ///
 /// Why choose first: refining at each level in turn (tried) started the finer fits from the
 /// coarse level's biased minimum, and on the shipped case (1 model sub-step, 8-sub-step data,
@@ -417,43 +421,75 @@ pub(super) fn refine_by_prediction_error<'a>(
         }
         levels.push(last * 2);
     }
-    // The levels are independent: tuned on parallel threads, finest first (the longest).
-    let mut order = levels.clone();
-    order.reverse();
-    let t0 = std::time::Instant::now();
-    let mut tuned: Vec<(usize, f64, f64)> = crate::par::map(&order, |&l| {
-        let (f, ll) = tune_pem_force(
+    let initial = opts.initial_state.as_deref();
+    let coarse = |level: usize| {
+        tune_pem_force(
             setup,
             model,
             choice,
             sigma,
             start,
-            l,
-            opts.initial_state.as_deref(),
+            level,
+            initial,
             ForceSearch::Coarse,
-        );
-        (l, f, ll)
-    })
+        )
+    };
+    let t0 = std::time::Instant::now();
+    // The observer force is tuned at the setup's level, and every other level's likelihood
+    // taken with that observer (in parallel, finest first: the longest); the chosen level's
+    // force is tuned afterwards. (level, its coarse force if tuned, log-likelihood)
+    let mut tuned: Vec<(usize, Option<f64>, f64)> = {
+        let (f0, ll0) = coarse(opts.substeps);
+        let mut order: Vec<usize> = levels
+            .iter()
+            .copied()
+            .filter(|&l| l != opts.substeps)
+            .collect();
+        order.reverse();
+        let mut v = crate::par::map(&order, |&l| {
+            (
+                l,
+                None,
+                pem_log_likelihood(setup, model, choice, sigma, start, l, initial, f0),
+            )
+        });
+        v.push((opts.substeps, Some(f0), ll0));
+        v
+    }
     .into_iter()
     .filter(|(_, _, ll)| ll.is_finite())
     .collect();
     tuned.sort_by_key(|t| t.0);
     let best = tuned.iter().map(|t| t.2).fold(f64::NEG_INFINITY, f64::max);
-    // The likeliest level and its coarse force (for the start-motion test below).
-    let likeliest = tuned
+    // The coarse force of a level (tuned when first asked for if the choice did not).
+    let mut coarse_forces: Vec<(usize, f64)> =
+        tuned.iter().filter_map(|t| t.1.map(|f| (t.0, f))).collect();
+    let mut coarse_force_of = |level: usize| -> f64 {
+        if let Some(&(_, f)) = coarse_forces.iter().find(|t| t.0 == level) {
+            return f;
+        }
+        let f = coarse(level).0;
+        coarse_forces.push((level, f));
+        f
+    };
+    // The likeliest level (for the start-motion test below) and the one kept.
+    let likeliest_level = tuned
         .iter()
         .find(|t| t.2 == best)
-        .map_or((opts.substeps, 0.0), |t| (t.0, t.1));
-    let (sub, force_std, _) = tuned
+        .map_or(opts.substeps, |t| t.0);
+    let sub = tuned
         .iter()
-        .copied()
         .find(|t| t.2 >= best - significant)
-        .unwrap_or((opts.substeps, 0.0, f64::NEG_INFINITY));
+        .map_or(opts.substeps, |t| t.0);
+    let force_std = if tuned.is_empty() {
+        0.0
+    } else {
+        coarse_force_of(sub)
+    };
     // The chosen level's force, searched again near the coarse one on the first
     // [`FORCE_TUNE_SAMPLES`] (see there); with it the likelihood of the start values there.
     let force_prefix = data.prefix(FORCE_TUNE_SAMPLES);
     let tune_data = force_prefix.as_ref().unwrap_or(data);
-    let initial = opts.initial_state.as_deref();
     let near = |level: usize, coarse_force: f64| {
         if tuned.iter().any(|t| t.0 == level) {
             tune_pem_force(
@@ -484,15 +520,15 @@ pub(super) fn refine_by_prediction_error<'a>(
     // −51 % ± 43 % after 9 minutes; seed 2 kept 32 at cost 1.7 (the spring 3.8 errors off).
     // At their likeliest level, 64, both end at 0.56–0.57, every parameter within 1.2 errors
     // (ACCURACY.md, "Long records").
-    if prefix.is_some() && likeliest.0 != sub {
+    if prefix.is_some() && likeliest_level != sub {
         let whole_significant = 1.5 * (2.0 * (data.len() * sigma.len()) as f64).sqrt();
         let whole = |level: usize, force: f64| {
             pem_log_likelihood(setup, model, data, sigma, start, level, initial, force)
         };
         let kept_whole = whole(sub, force_std);
-        let (force, likelihood) = near(likeliest.0, likeliest.1);
-        if whole(likeliest.0, force) > kept_whole + whole_significant {
-            (force_std, sub, kept_likelihood) = (force, likeliest.0, likelihood);
+        let (force, likelihood) = near(likeliest_level, coarse_force_of(likeliest_level));
+        if whole(likeliest_level, force) > kept_whole + whole_significant {
+            (force_std, sub, kept_likelihood) = (force, likeliest_level, likelihood);
         }
     }
     // Passes that did not converge: their last answer is no likelier a start than their
@@ -585,15 +621,15 @@ pub(super) fn refine_by_prediction_error<'a>(
             force_std.max(floor),
             &mut tests,
         )?;
-        if motion.is_some() && likeliest.0 != sub {
+        if motion.is_some() && likeliest_level != sub {
             motion = start_motion(
                 setup,
                 model,
                 data,
                 sigma,
                 &r.values,
-                likeliest.0,
-                likeliest.1.max(floor),
+                likeliest_level,
+                coarse_force_of(likeliest_level).max(floor),
                 &mut tests,
             )?;
         }
