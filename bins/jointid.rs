@@ -143,7 +143,8 @@ enum Command {
         #[arg(long)]
         json: bool,
         /// Exit non-zero (after writing every output) when the identified model does not
-        /// explain the data: residuals not white, or fitted noise above the stated noise_std.
+        /// explain the data: residuals not white, fitted noise above the stated noise_std,
+        /// or a normalised output-error cost above 2 (use it in scripts).
         #[arg(long)]
         strict: bool,
         /// Switch the output-error refinement off (the Kalman pipeline's last stage).

@@ -2171,6 +2171,27 @@ fn finish_with_output_error(
                         r.report.cost_end
                     ));
                 }
+                // A misfit from a start in motion that the first sample did not show: the
+                // free run cannot start elsewhere, so `identify` refuses the record with
+                // the figure (see `pem::motion_behind_misfit`).
+                if r.report.accepted
+                    && r.report.cost_end > ANSWER_MISFIT_COST
+                    && !sign_u
+                    && opts.start_motion.is_none()
+                    && opts.starts_mid_record.is_none()
+                    && model.has_dense()
+                    && let Some(m) = pem::motion_behind_misfit(
+                        setup,
+                        model,
+                        data,
+                        sigma,
+                        &r.values,
+                        r.report.substeps,
+                    )
+                {
+                    result.motion_in_record = Some(m);
+                    return;
+                }
                 if r.report.accepted
                     && let Some(note) =
                         residuals_not_white(setup, model, &r.values, data, sigma, r.report.substeps)

@@ -295,6 +295,71 @@ fn a_cut_record_at_full_noise_is_seen_in_motion_by_its_innovations() {
     }
 }
 
+/// A record cut from a test in motion whose first sample reads like rest, on a law without
+/// a `sign(u)` term (Coulomb `sign(v), u`; 64-sub-step data, 10 % noise, samples 500–2,499
+/// of seed 5022): the free-run output error starts the model at rest, and its answer was
+/// `sign(v)` +54, `u` −25 standard errors off with only a misfit note (8 of 120 fresh such
+/// records, twenty-sixth session). The misfit is now tested for a start in motion (the
+/// prediction error's likelihood-ratio test at the answer) and the record is refused with
+/// the figure and the advice, as one whose first sample shows its motion. The same
+/// simulation from its start (at rest) is answered, every parameter within 3 errors.
+#[test]
+fn a_coulomb_record_cut_in_motion_is_refused_not_misidentified() {
+    let setup = two_beam(&["sign(v)", "u"], &[3000.0, 3.0e5], 1);
+    let sim = simulate(
+        &setup,
+        &SimulateOptions {
+            scenario: Scenario::Random { rms: 2e4 },
+            steps: 2500,
+            dt_s: setup.dt_s,
+            substeps: 64,
+            noise: Noise::Additive(0.1),
+            seed: 5022,
+        },
+    )
+    .unwrap();
+    let cut = |skip: usize| TestData {
+        samples: (0..2000).collect(),
+        t_ns: vec![0; 2000],
+        excitation: sim.excitation[skip..skip + 2000].to_vec(),
+        response: sim.response[skip..skip + 2000].to_vec(),
+    };
+    let opts = IdentifyOptions::from_setup(&setup);
+    match identify(
+        &setup,
+        &cut(500),
+        &opts,
+        Some(&sim.truth),
+        &mut |_| {},
+        &mut |_, _| {},
+    ) {
+        Err(e) => {
+            let text = e.to_string();
+            assert!(
+                text.contains("starts in motion although its first sample reads like rest")
+                    && text.contains("--no-refine"),
+                "{text}"
+            );
+        }
+        Ok(id) => panic!(
+            "a record cut in motion was answered: {:?}; notes {:?}",
+            id.final_parameters(),
+            id.notes
+        ),
+    }
+    let id = identify(
+        &setup,
+        &cut(0),
+        &opts,
+        Some(&sim.truth),
+        &mut |_| {},
+        &mut |_, _| {},
+    )
+    .unwrap();
+    assert!(id.failure.is_none(), "{:?}", id.failure);
+    assert_every_parameter_within(&id, 3.0, "from rest");
+}
+
 /// A record at rest that the start-at-rest test flags at the kept model level and clears at
 /// the likeliest (the shipped friction setup, 64-sub-step data, 100 % noise, 2,000 samples,
 /// seed 4). At this noise the level kept is the coarsest within 3 standard deviations of

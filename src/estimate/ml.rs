@@ -1869,7 +1869,7 @@ fn finish(
         warnings.insert(
             0,
             format!(
-                "the residuals are not white in {} of {m} channels (worst `{name}`: portmanteau {q:.1} over {wl} lags, 99.9 % limit {chi2_999:.1}): the model does not explain the data; the standard errors include the residual correlation (Newey–West) but not the bias it may cause",
+                "the residuals are not white in {} of {m} channels (worst `{name}`: portmanteau {q:.1} over {wl} lags, 99.9 % limit {chi2_999:.1}): the model does not explain the data (or the fit ended in a local minimum: with few sensors for several connections the likelihood has many; give `initial` values near the expected ones); the standard errors include the residual correlation (Newey–West) but not the bias it may cause",
                 not_white.len()
             ),
         );

@@ -358,6 +358,49 @@ fn start_motion(
     )
 }
 
+/// Whether a free-run output-error answer that misfits the record (a law without a `sign(u)`
+/// term, refined from rest) misfits it because the record starts in motion: the same
+/// likelihood-ratio test as the prediction error's ([`start_motion`]) at the answer, with the
+/// observer's force tuned there (on the first [`LEVEL_CHOICE_SAMPLES`]). `None` when it does
+/// not or the test cannot run.
+///
+/// Why (twenty-sixth session): records cut from a test in motion whose first sample read
+/// like rest (Coulomb `sign(v), u` setup, 10 % noise, 500 samples dropped, 8 of 120 fresh
+/// seeds) were refined from rest and answered 6–54 standard errors off, with only the misfit
+/// note (normalised cost 2.9–21) to say something was wrong. The free run cannot start
+/// elsewhere, so a record found in motion is refused with the figure and the advice
+/// (`IdentifyError::MotionInRecord`), as one whose first sample shows it.
+pub(super) fn motion_behind_misfit(
+    setup: &Setup,
+    model: &Model,
+    data: &TestData,
+    sigma: &[f64],
+    params: &[f64],
+    substeps: usize,
+) -> Option<super::MotionInRecord> {
+    let prefix = data.prefix(LEVEL_CHOICE_SAMPLES);
+    let choice = prefix.as_ref().unwrap_or(data);
+    let (force, ll) = tune_pem_force(
+        setup,
+        model,
+        choice,
+        sigma,
+        params,
+        substeps,
+        None,
+        ForceSearch::Coarse,
+    );
+    if !ll.is_finite() {
+        return None;
+    }
+    let mut tests = Vec::new();
+    start_motion(
+        setup, model, data, sigma, params, substeps, force, &mut tests,
+    )
+    .ok()
+    .flatten()
+}
+
 /// Prediction-error refinement for laws with a `sign(u)` term (see
 /// `estimate::prediction_error`), from the residual-force estimate. The model sub-steps are
 /// chosen first, at the start values: the innovation likelihood at every level from the
