@@ -79,6 +79,9 @@ struct Cli {
 }
 
 fn main() -> ExitCode {
+    // As `jointid`: iceoryx2's "no config file was loaded" warning on every run silenced;
+    // its errors still show, and `IOX2_LOG_LEVEL` overrides.
+    iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Error);
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

@@ -89,7 +89,7 @@ enum Command {
         #[arg(long, default_value_t = 2000)]
         steps: usize,
         /// Sample interval, s (default: the setup's integrator.dt_s).
-        #[arg(long)]
+        #[arg(long, allow_negative_numbers = true)]
         dt: Option<f64>,
         /// Newmark steps per recorded sample (1 = the identification's own discretisation).
         #[arg(long, default_value_t = 1)]
@@ -262,13 +262,18 @@ enum Command {
     },
     /// Summarise a recording: channels, samples, setup, truth, damage.
     Inspect {
+        /// The recording (MCAP) to summarise.
         recording: PathBuf,
+        /// Print one JSON object instead of the summary.
         #[arg(long)]
         json: bool,
     },
 }
 
 fn main() -> ExitCode {
+    // iceoryx2 warns on every run that no config file was loaded (its defaults are what we
+    // use); its errors still show, and `IOX2_LOG_LEVEL` overrides.
+    iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Error);
     let cli = Cli::parse();
     match run(cli) {
         Ok(code) => code,
@@ -554,11 +559,12 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 println!("  encoding     {}", i.encoding);
                 println!(
                     "  setup        {}",
-                    i.setup_title.as_deref().unwrap_or(if i.setup_attached {
-                        "(attached, invalid)"
-                    } else {
-                        "(none)"
-                    })
+                    match i.setup_title.as_deref() {
+                        Some("") => "(attached, untitled)",
+                        Some(t) => t,
+                        None if i.setup_attached => "(attached, invalid)",
+                        None => "(none)",
+                    }
                 );
                 if i.model_files_attached {
                     println!(
@@ -621,6 +627,13 @@ fn live(setup: &Setup, o: LiveOptions, json: bool) -> Result<ExitCode> {
             .context("installing the signal handler")?;
         signal_hook::flag::register(sig, Arc::clone(&o.stop))
             .context("installing the signal handler")?;
+    }
+    if !json {
+        // Until the first frame nothing else is printed: say what the session waits for.
+        eprintln!(
+            "waiting for frames on the iceoryx2 services {0}/jointid/excitation and {0}/jointid/response (Ctrl-C ends the session; --seconds counts from the first frame)",
+            o.shm.session
+        );
     }
     let worker_setup = setup.clone();
     let worker = std::thread::spawn(move || {

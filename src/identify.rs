@@ -1117,16 +1117,24 @@ pub fn identify(
     on_sample: &mut dyn FnMut(usize, &StepOutput),
 ) -> Result<Identification, IdentifyError> {
     let first = identify_once(setup, data, opts, truth, on_pass, on_sample)?;
-    match first.motion_in_record {
+    let mut result = match first.motion_in_record {
         Some(m) if opts.start_motion.is_none() && opts.initial_state.is_none() => {
             let again = IdentifyOptions {
                 start_motion: Some(m),
                 ..opts.clone()
             };
-            identify_once(setup, data, &again, truth, on_pass, on_sample)
+            identify_once(setup, data, &again, truth, on_pass, on_sample)?
         }
-        _ => Ok(first),
+        _ => first,
+    };
+    // `--bootstrap` belongs to the prediction-error refinement of `sign(u)` laws: said
+    // rather than ignored without a word.
+    if !has_sign_u_basis(setup) && opts.bootstrap.is_some_and(|n| n > 0) {
+        result.notes.push(
+            "`--bootstrap` not run: the parametric bootstrap belongs to the prediction-error refinement of `sign(u)` laws; this law's errors are its estimator's own (maximum likelihood's, or the free-run output error's scaled bound, widened for a misfit or a rough cost)".into(),
+        );
     }
+    Ok(result)
 }
 
 fn identify_once(
