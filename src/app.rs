@@ -53,8 +53,9 @@ pub enum AppError {
     /// ended early, why (the read error, or the damage of a truncated file), so that a short
     /// recording is not mistaken for an empty one.
     #[error(
-        "{path}: only {samples} usable samples were read (identification needs at least {needed}){}",
-        cause.as_deref().map(|c| format!(": {c}")).unwrap_or_default()
+        "{path}: {}only {samples} usable samples were read{} (identification needs at least {needed})",
+        cause.as_deref().map(|c| format!("{c}: ")).unwrap_or_default(),
+        if cause.is_some() { " before it" } else { "" }
     )]
     TooLittleData {
         path: PathBuf,
