@@ -253,17 +253,22 @@ fn a_time_column_in_milliseconds_and_an_output_over_the_input_are_refused() {
         })
         .collect();
     std::fs::write(&csv, ms.join("\n")).unwrap();
+    // `jointid import CSV --setup … --out OUT`, expected to fail: its error message.
+    let refused = |out: &Path| {
+        let o = run(&[
+            "import",
+            csv.to_str().unwrap(),
+            "--setup",
+            setup,
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        let err = String::from_utf8_lossy(&o.stderr).into_owned();
+        assert_eq!(o.status.code(), Some(1), "{err}");
+        err
+    };
     let out = dir.path().join("ms.mcap");
-    let o = run(&[
-        "import",
-        csv.to_str().unwrap(),
-        "--setup",
-        setup,
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(1), "{err}");
+    let err = refused(&out);
     assert!(
         err.contains("ms.csv") && err.contains("1000.0000×") && err.contains("seconds"),
         "{err}"
@@ -271,16 +276,7 @@ fn a_time_column_in_milliseconds_and_an_output_over_the_input_are_refused() {
     assert!(!out.exists(), "no recording from a refused file");
 
     let before = std::fs::read(&csv).unwrap();
-    let o = run(&[
-        "import",
-        csv.to_str().unwrap(),
-        "--setup",
-        setup,
-        "--out",
-        csv.to_str().unwrap(),
-    ]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(1), "{err}");
+    let err = refused(&csv);
     assert!(
         err.contains("--out") && err.contains("is the input"),
         "{err}"
