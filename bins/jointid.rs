@@ -287,13 +287,16 @@ fn main() -> ExitCode {
 fn run(cli: Cli) -> Result<ExitCode> {
     match cli.command {
         Command::ExportMm { setup, out } => {
-            check_output_dir(
-                "--out",
-                &out,
-                jointid::matrix_market::EXPORT_FILES,
-                &[&setup],
-            )?;
             let s = Setup::from_file(&setup)?;
+            // The setup and, for an external model, the files it reads are inputs.
+            let mut inputs: Vec<&std::path::Path> = vec![&setup];
+            if let Some(ext) = s.external.as_deref() {
+                inputs.extend(
+                    [&ext.mass.path, &ext.stiffness.path, &ext.dof_map].map(|p| p.as_path()),
+                );
+                inputs.extend(ext.damping.as_ref().map(|d| d.path.as_path()));
+            }
+            check_output_dir("--out", &out, jointid::matrix_market::EXPORT_FILES, &inputs)?;
             let sum = jointid::matrix_market::export(&s, &out)
                 .with_context(|| format!("exporting {}", setup.display()))?;
             println!("exported {} DOFs:", sum.dofs);

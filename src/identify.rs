@@ -103,7 +103,7 @@ pub enum IdentifyError {
     MidRecord { sample: u64 },
     /// A start in motion seen by the whole record's innovations, not by its first sample.
     #[error(
-        "the record starts in motion although its first sample reads like rest: a start state refitted to the prediction error's innovations ({substeps} model sub-steps) removes {reduction:.1} from their whitened cost, beyond the limit {limit:.1}; this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a `sign(u)` term); identify with `--no-refine` (the Kalman passes estimate the initial state) or, for a law linear in the state, with `--estimator ml`"
+        "the record starts in motion although its first sample reads like rest: a start state refitted to an observer's innovations at the answer ({substeps} model sub-steps) removes {reduction:.1} from their whitened cost, beyond the limit {limit:.1}; this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a `sign(u)` term), and no option makes it start elsewhere when the first sample reads like rest (`--no-refine` would run the passes from rest too); record from rest (start the acquisition before the excitation) or cut the record where the structure is at rest, or, for a law linear in the state, identify with `--estimator ml` (it estimates the initial state)"
     )]
     MotionInRecord {
         reduction: f64,

@@ -337,7 +337,7 @@ fn a_coulomb_record_cut_in_motion_is_refused_not_misidentified() {
             let text = e.to_string();
             assert!(
                 text.contains("starts in motion although its first sample reads like rest")
-                    && text.contains("--no-refine"),
+                    && text.contains("record from rest"),
                 "{text}"
             );
         }

@@ -486,6 +486,9 @@ pub(super) fn refine_by_prediction_error<'a>(
     // The observer force is tuned at the setup's level, and every other level's likelihood
     // taken with that observer (in parallel, finest first: the longest); the chosen level's
     // force is tuned afterwards. (level, its coarse force if tuned, log-likelihood)
+    // When the setup's level fails at every force (its likelihood is not finite), its
+    // force is no observer to compare with: every level is tuned on its own (as before the
+    // twenty-sixth session).
     let mut tuned: Vec<(usize, Option<f64>, f64)> = {
         let (f0, ll0) = coarse(opts.substeps);
         let mut order: Vec<usize> = levels
@@ -495,11 +498,16 @@ pub(super) fn refine_by_prediction_error<'a>(
             .collect();
         order.reverse();
         let mut v = crate::par::map(&order, |&l| {
-            (
-                l,
-                None,
-                pem_log_likelihood(setup, model, choice, sigma, start, l, initial, f0),
-            )
+            if ll0.is_finite() {
+                (
+                    l,
+                    None,
+                    pem_log_likelihood(setup, model, choice, sigma, start, l, initial, f0),
+                )
+            } else {
+                let (f, ll) = coarse(l);
+                (l, Some(f), ll)
+            }
         });
         v.push((opts.substeps, Some(f0), ll0));
         v

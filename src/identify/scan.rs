@@ -927,6 +927,12 @@ pub(super) fn identify_from_scan(
         force_scales: Vec::new(),
     });
     finish_with_output_error(setup, model, data, opts, sigma, &mut result);
+    // A free-run misfit that a start in motion explains (a law without `sign(u)`):
+    // `identify` runs again and refuses the record with that figure
+    // (`pem::motion_behind_misfit`), not with this path's words.
+    if result.motion_in_record.is_some() && !has_sign_u_basis(setup) {
+        return Ok(result);
+    }
     accept_converged_start(setup, model, data, opts, sigma, &mut result);
     if let Some(old) = rescan_whole_record(setup, model, data, opts, sigma, &mut result) {
         grown_points.push(old);
@@ -984,6 +990,9 @@ pub(super) fn identify_from_scan(
         let mut o = opts.clone();
         o.substeps = sub;
         finish_with_output_error(setup, model, data, &o, sigma, &mut result);
+        if result.motion_in_record.is_some() && !has_sign_u_basis(setup) {
+            return Ok(result);
+        }
         // Its start may already be the whole-record minimum (no step lowers the cost).
         accept_converged_start(setup, model, data, &o, sigma, &mut result);
         let Some(s) = accepted_substeps(&result) else {

@@ -263,7 +263,8 @@ pub fn import_csv(
             // milliseconds is 1000×), not a model made for another rate: refused, as its
             // replay would identify nonsense at exit 0.
             let ratio = dt / setup.dt_s;
-            if !(0.1..10.0).contains(&ratio) {
+            // Both ends refused, with room for the round-off of times such as 0.001, 0.011.
+            if ratio <= 0.1 * (1.0 + 1e-6) || ratio >= 10.0 * (1.0 - 1e-6) {
                 return Err(ImportError::BadTime {
                     path: path.clone(),
                     line: second.line,
