@@ -1234,3 +1234,53 @@ fn live_refuses_an_estimator_without_an_online_step() {
         "{err}"
     );
 }
+
+/// Outputs are checked before the identification runs (a reviewer's finds): `--out` naming
+/// the recording itself is refused and the recording left as it was (the writer renames its
+/// finished file over `--out`), and `--plots` naming an existing file is refused up front
+/// (it failed after the whole identification, without printing the results); both name the
+/// option and the path, exit 1, and write nothing.
+#[test]
+fn outputs_over_an_input_or_a_file_are_refused_before_the_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("rec.mcap");
+    std::fs::copy(repo("recordings/two-beam-spring.mcap"), &rec).unwrap();
+    let before = std::fs::read(&rec).unwrap();
+    let o = run(&[
+        "replay",
+        rec.to_str().unwrap(),
+        "--out",
+        rec.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("--out") && err.contains("is the input"),
+        "{err}"
+    );
+    assert!(o.stdout.is_empty(), "no identification ran");
+    assert_eq!(
+        std::fs::read(&rec).unwrap(),
+        before,
+        "the recording is untouched"
+    );
+
+    let file = dir.path().join("afile");
+    std::fs::write(&file, "x").unwrap();
+    let out = dir.path().join("res.mcap");
+    let o = run(&[
+        "replay",
+        rec.to_str().unwrap(),
+        "--plots",
+        file.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("--plots") && err.contains("not a directory"),
+        "{err}"
+    );
+    assert!(!out.exists(), "nothing written before the refusal");
+}
