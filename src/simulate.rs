@@ -531,12 +531,14 @@ impl TruthSystem {
         // is formed on its own and then subtracted, in the order the allocating version
         // used, so the results are the same to the last bit (the noise-free exactness tests
         // of chaotic friction laws see a last-bit change).
-        w.rhs.gemv(1.0, &m.Lp, p, 0.0);
-        w.cv.gemv(1.0, &m.C, &w.vt, 0.0);
+        // (`dense::gemv`: nalgebra's `gemv` to the bit, in wider registers.)
+        use crate::dense::{Op, gemv};
+        gemv(&mut w.rhs, &m.Lp, p, Op::Set);
+        gemv(&mut w.cv, &m.C, &w.vt, Op::Set);
         w.rhs -= &w.cv;
-        w.cv.gemv(1.0, &m.K, &w.ut, 0.0);
+        gemv(&mut w.cv, &m.K, &w.ut, Op::Set);
         w.rhs -= &w.cv;
-        w.a0.gemv(1.0, &self.meff_inv, &w.rhs, 0.0);
+        gemv(&mut w.a0, &self.meff_inv, &w.rhs, Op::Set);
         // Free connection deformation, rate and acceleration. (`gemv_tr` sums by dot
         // products; an `Lc` column has one or two non-zeros, so the order cannot change a
         // bit.)
@@ -551,7 +553,7 @@ impl TruthSystem {
         let w = &mut self.work;
         // a = a₀ − (Y f): the product first, as the allocating version did (with two or more
         // connections the sum order matters to the last bit).
-        w.tmp.gemv(1.0, &self.Y, &w.f, 0.0);
+        gemv(&mut w.tmp, &self.Y, &w.f, Op::Set);
         s.a.copy_from(&w.a0);
         s.a -= &w.tmp;
         s.u.copy_from(&w.ut);
