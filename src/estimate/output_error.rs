@@ -145,7 +145,35 @@ pub fn sensitivities(
     let basis = setup.param_basis();
     let p0 = feasible(&basis, params);
     let run = |p: &[f64]| response_to_excitation(setup, model, p, excitation, setup.dt_s, substeps);
-    let y0 = run(&p0)?;
+    let frac = if basis.iter().any(is_sign) {
+        SIGN_LAW_STEP
+    } else {
+        1e-3
+    };
+    let steps: Vec<f64> = (0..p0.len())
+        .map(|j| {
+            (frac * scales[j].abs())
+                .max(1e-7 * p0[j].abs())
+                .max(f64::MIN_POSITIVE.sqrt())
+        })
+        .collect();
+    // The base point and every displaced one are independent simulations: run on parallel
+    // threads ([`crate::par`]), then differenced in the parameters' order (a failure is
+    // reported for the first point that failed in that order, as one after the other).
+    let mut points = vec![p0.clone()];
+    for j in 0..p0.len() {
+        let mut plus = p0.clone();
+        plus[j] += steps[j];
+        points.push(plus);
+        if !(is_sign(&basis[j]) && p0[j] - steps[j] < 0.0) {
+            let mut minus = p0.clone();
+            minus[j] -= steps[j];
+            points.push(minus);
+        }
+    }
+    let mut runs = crate::par::map(&points, |p| run(p)).into_iter();
+    let mut next = || runs.next().ok_or(SimulateError::Singular)?;
+    let y0 = next()?;
     let m = sigma.len();
     let flat = |y: &[Vec<f64>]| -> Vec<f64> {
         y.iter()
@@ -161,24 +189,13 @@ pub fn sensitivities(
     }
     let cost = residual.iter().map(|x| x * x).sum();
     let mut columns = Vec::with_capacity(p0.len());
-    let frac = if basis.iter().any(is_sign) {
-        SIGN_LAW_STEP
-    } else {
-        1e-3
-    };
     for j in 0..p0.len() {
-        let h = (frac * scales[j].abs())
-            .max(1e-7 * p0[j].abs())
-            .max(f64::MIN_POSITIVE.sqrt());
-        let mut plus = p0.clone();
-        plus[j] += h;
-        let fp = flat(&run(&plus)?);
+        let h = steps[j];
+        let fp = flat(&next()?);
         let col: Vec<f64> = if is_sign(&basis[j]) && p0[j] - h < 0.0 {
             fp.iter().zip(&f0).map(|(a, b)| (a - b) / h).collect()
         } else {
-            let mut minus = p0.clone();
-            minus[j] -= h;
-            let fm = flat(&run(&minus)?);
+            let fm = flat(&next()?);
             fp.iter()
                 .zip(&fm)
                 .map(|(a, b)| (a - b) / (2.0 * h))
@@ -525,15 +542,20 @@ pub fn refine_global(
     let points =
         ((width / (SCAN_SPACING * prefix_half_width)).ceil() as usize).clamp(3, SCAN_POINTS_MAX);
     let (exc, resp) = (&excitation[..len], &response[..len]);
-    let mut grid = Vec::with_capacity(points);
-    for i in 0..points {
-        let mut p = plain.values.clone();
-        p[j] = range[0] + width * i as f64 / (points - 1) as f64;
-        let c = residuals(setup, model, &p, exc, resp, sigma, substeps)
+    // The scan's points on parallel threads (independent simulations).
+    let scan: Vec<Vec<f64>> = (0..points)
+        .map(|i| {
+            let mut p = plain.values.clone();
+            p[j] = range[0] + width * i as f64 / (points - 1) as f64;
+            p
+        })
+        .collect();
+    let costs = crate::par::map(&scan, |p| {
+        residuals(setup, model, p, exc, resp, sigma, substeps)
             .map(|r| r.1)
-            .unwrap_or(f64::INFINITY);
-        grid.push((p, c));
-    }
+            .unwrap_or(f64::INFINITY)
+    });
+    let grid: Vec<(Vec<f64>, f64)> = scan.into_iter().zip(costs).collect();
     // Local minima of the scan, lowest first; the three best not already in the plain
     // result's basin start descents. On the whole record a scan point within a basin
     // half-width of the plain result descends into it. On a prefix the prefix's basin is

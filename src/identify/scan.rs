@@ -169,11 +169,15 @@ fn scan_start(
     };
     // One parameter over its grid, the others held; keeps the lowest (the current value
     // included, so a pass never makes the start worse).
+    // (The grid's points differ only in `j`, which each sets: their costs do not depend on
+    // the order, so they are run on parallel threads and compared in the grid's order.)
     let scan_one = |start: &mut Vec<f64>, cost: &mut f64, j: usize, grid: &[f64]| {
-        for &v in grid {
+        let costs = crate::par::map(grid, |&v| {
             let mut p = start.clone();
             p[j] = v;
-            let c = cost_at(&p);
+            cost_at(&p)
+        });
+        for (&v, c) in grid.iter().zip(costs) {
             if c < *cost {
                 *cost = c;
                 start[j] = v;
@@ -257,15 +261,14 @@ fn grid_candidates(
     let kg = log_grid(ACCEL_SCAN_RANGE, kmax, GRID_SPRING_POINTS);
     let fg = log_grid(FRICTION_SCAN_RANGE, frms, GRID_FRICTION_POINTS);
     let (nk, nf) = (kg.len(), fg.len());
-    let mut c = vec![f64::INFINITY; nk * nf];
-    for a in 0..nk {
-        for b in 0..nf {
-            let mut p = start.to_vec();
-            p[jk] = kg[a];
-            p[jf] = fg[b];
-            c[a * nf + b] = cost_at(&p);
-        }
-    }
+    // Every point of the grid on parallel threads (independent simulations).
+    let points: Vec<(usize, usize)> = (0..nk).flat_map(|a| (0..nf).map(move |b| (a, b))).collect();
+    let c = crate::par::map(&points, |&(a, b)| {
+        let mut p = start.to_vec();
+        p[jk] = kg[a];
+        p[jf] = fg[b];
+        cost_at(&p)
+    });
     let mut local: Vec<(usize, usize)> = Vec::new();
     for a in 0..nk {
         for b in 0..nf {
@@ -635,19 +638,32 @@ fn rescan_whole_record(
         scan_scales(model, &data.excitation).0,
         RESCAN_FAR_POINTS,
     );
-    let mut lowest: Option<(Vec<f64>, f64)> = None;
-    for k in near.chain(far) {
-        let mut p = values.clone();
-        p[j] = k;
-        let Ok((_, c)) = residuals(
+    // Every point's whole-record cost on parallel threads (independent simulations), the
+    // lowest taken in the points' order.
+    let points: Vec<Vec<f64>> = near
+        .chain(far)
+        .map(|k| {
+            let mut p = values.clone();
+            p[j] = k;
+            p
+        })
+        .collect();
+    let costs = crate::par::map(&points, |p| {
+        residuals(
             setup,
             model,
-            &p,
+            p,
             &data.excitation,
             &data.response,
             sigma,
             sub,
-        ) else {
+        )
+        .ok()
+        .map(|(_, c)| c)
+    });
+    let mut lowest: Option<(Vec<f64>, f64)> = None;
+    for (p, c) in points.into_iter().zip(costs) {
+        let Some(c) = c else {
             continue;
         };
         if lowest.as_ref().is_none_or(|l| c / nobs < l.1) {
