@@ -289,3 +289,29 @@ pub fn spectral_radius(a: &DMatrix<f64>) -> f64 {
         None => f64::INFINITY,
     }
 }
+
+/// Whether a finite difference of half-width `h` at a parameter of value `value` with basis
+/// function `basis` is one-sided (forward only): a friction level whose backward point would
+/// be negative, a law the simulator cannot run.
+pub(crate) fn one_sided_difference(basis: &Basis, value: f64, h: f64) -> bool {
+    matches!(basis, Basis::SignU | Basis::SignV) && value - h < 0.0
+}
+
+/// The displaced points of a central-difference Jacobian at `p` with half-widths `steps`, in
+/// the order the Jacobians difference them: per parameter `p + h e_j`, then `p − h e_j`
+/// unless the difference is one-sided ([`one_sided_difference`]). The output-error and
+/// prediction-error Jacobians run them on parallel threads.
+pub(crate) fn difference_points(basis: &[Basis], p: &[f64], steps: &[f64]) -> Vec<Vec<f64>> {
+    let mut points = Vec::with_capacity(2 * p.len());
+    for j in 0..p.len() {
+        let mut plus = p.to_vec();
+        plus[j] += steps[j];
+        points.push(plus);
+        if !one_sided_difference(&basis[j], p[j], steps[j]) {
+            let mut minus = p.to_vec();
+            minus[j] -= steps[j];
+            points.push(minus);
+        }
+    }
+    points
+}

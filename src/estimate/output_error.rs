@@ -161,16 +161,7 @@ pub fn sensitivities(
     // threads ([`crate::par`]), then differenced in the parameters' order (a failure is
     // reported for the first point that failed in that order, as one after the other).
     let mut points = vec![p0.clone()];
-    for j in 0..p0.len() {
-        let mut plus = p0.clone();
-        plus[j] += steps[j];
-        points.push(plus);
-        if !(is_sign(&basis[j]) && p0[j] - steps[j] < 0.0) {
-            let mut minus = p0.clone();
-            minus[j] -= steps[j];
-            points.push(minus);
-        }
-    }
+    points.extend(super::difference_points(&basis, &p0, &steps));
     let mut runs = crate::par::map(&points, |p| run(p)).into_iter();
     let mut next = || runs.next().ok_or(SimulateError::Singular)?;
     let y0 = next()?;
@@ -192,7 +183,7 @@ pub fn sensitivities(
     for j in 0..p0.len() {
         let h = steps[j];
         let fp = flat(&next()?);
-        let col: Vec<f64> = if is_sign(&basis[j]) && p0[j] - h < 0.0 {
+        let col: Vec<f64> = if super::one_sided_difference(&basis[j], p0[j], h) {
             fp.iter().zip(&f0).map(|(a, b)| (a - b) / h).collect()
         } else {
             let fm = flat(&next()?);

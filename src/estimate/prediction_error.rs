@@ -729,17 +729,8 @@ fn jacobian(
     } else {
         vec![p.to_vec()]
     };
-    for j in 0..p.len() {
-        let mut plus = p.to_vec();
-        plus[j] += steps[j];
-        points.push(plus);
-        // One-sided at a friction level's bound 0 (the simulator cannot run a negative one).
-        if !(is_sign(&basis[j]) && p[j] - steps[j] < 0.0) {
-            let mut minus = p.to_vec();
-            minus[j] -= steps[j];
-            points.push(minus);
-        }
-    }
+    // One-sided at a friction level's bound 0 (the simulator cannot run a negative one).
+    points.extend(super::difference_points(basis, p, &steps));
     let mut runs = crate::par::map(&points, |q| {
         innovations(setup, model, q, pred, exc, resp, substeps)
     })
@@ -768,7 +759,7 @@ fn jacobian(
         plus[j] += h;
         add(&plus, &rp);
         // Columns of ∂ŷ/∂p in normalised units: the residual is y − ŷ, so −∂r/∂p.
-        let col: Vec<f64> = if is_sign(&basis[j]) && p[j] - h < 0.0 {
+        let col: Vec<f64> = if super::one_sided_difference(&basis[j], p[j], h) {
             rp.iter().zip(&r).map(|(a, b)| -(a - b) / h).collect()
         } else {
             let (rm, _) = runs.next().ok_or(SimulateError::Singular)??;
