@@ -315,3 +315,30 @@ pub(crate) fn difference_points(basis: &[Basis], p: &[f64], steps: &[f64]) -> Ve
     }
     points
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Forward and backward points per parameter in order; a friction level whose backward
+    /// point would be negative gets the forward one only, and one at a positive value both.
+    #[test]
+    fn difference_points_are_one_sided_only_at_a_friction_bound() {
+        let basis = [Basis::SignU, Basis::U, Basis::SignV];
+        let p = [0.5, 10.0, 3.0];
+        let steps = [1.0, 2.0, 1.0];
+        let points = difference_points(&basis, &p, &steps);
+        assert_eq!(
+            points,
+            vec![
+                vec![1.5, 10.0, 3.0],
+                vec![0.5, 12.0, 3.0],
+                vec![0.5, 8.0, 3.0],
+                vec![0.5, 10.0, 4.0],
+                vec![0.5, 10.0, 2.0],
+            ]
+        );
+        assert!(one_sided_difference(&Basis::SignV, 0.5, 1.0));
+        assert!(!one_sided_difference(&Basis::U, -5.0, 1.0));
+    }
+}
