@@ -870,14 +870,27 @@ pub(super) fn identify_from_scan(
         };
         let mut best = whole(&start);
         let others = grid_candidates(setup, model, &basis, &start, exc, resp, sigma, sub);
-        for (mut p, _) in others {
-            if p == start {
-                continue;
-            }
-            candidates_tried += 1;
+        // Each candidate grown on its own thread (its growth does not depend on the others),
+        // then taken in the candidates' order: a candidate equal to the start as it stands
+        // by then is passed over, as one after the other.
+        let first_start = start.clone();
+        let todo: Vec<Vec<f64>> = others
+            .into_iter()
+            .map(|(p, _)| p)
+            .filter(|p| *p != first_start)
+            .collect();
+        let grown_all = crate::par::map(&todo, |raw| {
+            let mut p = raw.clone();
             let mut sc = scale_of(&p);
             let g = grow_start(setup, model, data, opts, sigma, len, &mut p, &mut sc);
             let c = whole(&p);
+            (p, sc, g, c)
+        });
+        for (raw, (p, sc, g, c)) in todo.iter().zip(grown_all) {
+            if *raw == start {
+                continue;
+            }
+            candidates_tried += 1;
             grown_points.push(p.clone());
             if c < best {
                 (best, start, scales, grown) = (c, p, sc, g);
