@@ -167,6 +167,24 @@ impl Stepper {
         }
     }
 
+    /// The map `(u, u̇, ü) ↦ (ũ, ṽ)` of the first sub-step's predictors
+    /// `ũ = u + h u̇ + (½−β)h² ü`, `ṽ = u̇ + (1−γ)h ü` (2n × 3n): [`Stepper::advance`] reads
+    /// the state only through them, so the transition Φ factors through this map (rank 2n).
+    pub fn predictor_map(&self) -> DMatrix<f64> {
+        let n = self.n;
+        let h = self.h();
+        let Newmark { gamma, beta } = self.newmark;
+        let mut r = DMatrix::zeros(2 * n, 3 * n);
+        for i in 0..n {
+            r[(i, i)] = 1.0;
+            r[(i, n + i)] = h;
+            r[(i, 2 * n + i)] = (0.5 - beta) * h * h;
+            r[(n + i, n + i)] = 1.0;
+            r[(n + i, 2 * n + i)] = (1.0 - gamma) * h;
+        }
+        r
+    }
+
     /// Γ_f: response of the state over one sample to a unit connection force held over the
     /// interval, from rest with no excitation; columns are (u; v; a) stacked, 3n × q.
     pub fn force_response(&mut self) -> DMatrix<f64> {

@@ -192,7 +192,14 @@ impl KalmanEstimator {
             m,
             inp.channel_sigma.iter().map(|s| s * s),
         ));
-        let P = solve_filter_dare(&A, &H, &Q, &V, opts.horizon);
+        // The transition reads (u, u̇, ü, f) only through the sub-step predictors and f.
+        let mut T = DMatrix::zeros(2 * n + q, nz);
+        T.view_mut((0, 0), (2 * n, 3 * n))
+            .copy_from(&stepper.predictor_map());
+        for j in 0..q {
+            T[(2 * n + j, 3 * n + j)] = 1.0;
+        }
+        let P = solve_filter_dare_factored(&A, &T, &H, &Q, &V, opts.horizon);
         let S = &H * &P * H.transpose() + &V;
         let S = (&S + S.transpose()) * 0.5;
         let chol = S
@@ -882,6 +889,79 @@ pub fn solve_filter_dare(
     filter_dare_doubling(A, H, Q, V, max_steps).0
 }
 
+/// Largest entry of `A − Ā T`, relative to the largest of `A`, at which
+/// [`solve_filter_dare_factored`] takes the transition as factored (round-off of the
+/// Newmark maps is ~1e-15 of their entries); above it, the full solve.
+const FACTOR_TOLERANCE: f64 = 1e-11;
+
+/// [`solve_filter_dare`] for a transition that depends on the state only through `r < nz`
+/// coordinates `s = T z` (`T`: r × nz, full row rank), i.e. `A = Ā T`: the Riccati
+/// equation is solved in those coordinates and the full a-priori covariance rebuilt from
+/// the solution. Why: a Newmark step reads the state `(u, u̇, ü)` only through the
+/// predictors `ũ = u + h u̇ + (½−β)h² ü`, `ṽ = u̇ + (1−γ)h ü` of its first sub-step
+/// ([`Stepper::predictor_map`]), so the model's 3n-state transition has rank 2n; the
+/// doubling's cost is cubic in the dimension and the Riccati solves were a quarter of an
+/// identification's CPU time (BENCHMARKS.md, twenty-eighth session).
+///
+/// With `z_{k+1} = Ā s_k + w_k` (`Cov w = Q`) and `y_k = H z_k + v_k` (`Cov v = V`), the
+/// filtered covariance `Π = Cov(s_k | y_{≤k})` obeys a Riccati equation whose process and
+/// measurement noises are correlated (`w_k` enters both `s_{k+1}` and `y_{k+1}`):
+/// `Ã = T Ā`, `C̃ = H Ā`, `Q_s = T Q Tᵀ`, `N = T Q Hᵀ`, `R = H Q Hᵀ + V`; with
+/// `Ã' = Ã − N R⁻¹ C̃`, `Q' = Q_s − N R⁻¹ Nᵀ` it is the standard filter DARE in
+/// `(Ã', C̃, Q', R)`, and `P = Ā Π Āᵀ + Q`. Exact: the innovations and their covariance
+/// `H P Hᵀ + V` are those of the full equation (the horizon cap counts one step more:
+/// `Π` after 2ᵏ steps is `P` after 2ᵏ + 1). When `A` does not factor through `T` to
+/// [`FACTOR_TOLERANCE`], or a reduced matrix is singular, the full equation is solved.
+pub fn solve_filter_dare_factored(
+    A: &DMatrix<f64>,
+    T: &DMatrix<f64>,
+    H: &DMatrix<f64>,
+    Q: &DMatrix<f64>,
+    V: &DMatrix<f64>,
+    horizon: Option<usize>,
+) -> DMatrix<f64> {
+    let max_steps = horizon.map_or(DARE_MAX_STEPS, doubling_steps_for);
+    match reduced_dare(A, T, H, Q, V, max_steps) {
+        Some(p) => p,
+        None => filter_dare_doubling(A, H, Q, V, max_steps).0,
+    }
+}
+
+/// The reduced solve of [`solve_filter_dare_factored`]; `None` when it does not apply.
+fn reduced_dare(
+    A: &DMatrix<f64>,
+    T: &DMatrix<f64>,
+    H: &DMatrix<f64>,
+    Q: &DMatrix<f64>,
+    V: &DMatrix<f64>,
+    max_steps: usize,
+) -> Option<DMatrix<f64>> {
+    let nz = A.nrows();
+    if T.ncols() != nz || T.nrows() >= nz || A.ncols() != nz {
+        return None;
+    }
+    let tt = T.transpose();
+    // Ā = A Tᵀ (T Tᵀ)⁻¹: exact when A's rows lie in T's row space (checked).
+    let gram = (T * &tt).cholesky()?;
+    let abar = gram.solve(&(T * A.transpose())).transpose();
+    let misfit = (A - &abar * T).amax();
+    if misfit.is_nan() || misfit > FACTOR_TOLERANCE * A.amax() {
+        return None;
+    }
+    let a_red = T * &abar;
+    let c_red = H * &abar;
+    let qt = Q * &tt;
+    let q_s = T * &qt;
+    let n_cross = qt.transpose() * H.transpose();
+    let r_o = crate::dense::symmetrized(&(H * Q * H.transpose() + V));
+    let r_chol = r_o.clone().cholesky()?;
+    let a_std = &a_red - &n_cross * r_chol.solve(&c_red);
+    let q_std = crate::dense::symmetrized(&(&q_s - &n_cross * r_chol.solve(&n_cross.transpose())));
+    let (pi, _) = filter_dare_doubling(&a_std, &c_red, &q_std, &r_o, max_steps);
+    let p = crate::dense::symmetrized(&(&abar * pi * abar.transpose() + Q));
+    p.iter().all(|x| x.is_finite()).then_some(p)
+}
+
 /// Horizon, in lengths of the record at hand, beyond which [`solve_filter_dare`] does not
 /// iterate the Riccati equation. The doubling's k-th iterate is the a-priori covariance
 /// after 2ᵏ filter steps from `Q`; what it still changes past 64 record lengths belongs to
@@ -1188,13 +1268,19 @@ dt_s = 0.001
         assert!((spectral_radius_by_powers(&j) - 1.0).abs() < 1e-4);
     }
 
+    /// `(A, T, H, Q, V)` of a filter model.
+    type FilterModel = (
+        DMatrix<f64>,
+        DMatrix<f64>,
+        DMatrix<f64>,
+        DMatrix<f64>,
+        DMatrix<f64>,
+    );
+
     /// The filter model of the paper's undamped two-beam problem (Newmark modes on the unit
-    /// circle, a random-walk force at the joint) with the shipped recording's noise:
-    /// the doubling stops before its cap and its answer is a fixed point of the Riccati step
-    /// to round-off. Before it stopped at its round-off floor it ran on to the 80-step cap
-    /// on some of them, its update doubling every step from ~1e-12 to ~1e-6 of the answer.
-    #[test]
-    fn doubling_stops_at_its_round_off_floor_on_an_undamped_model() {
+    /// circle, a random-walk force of std `walk` at the joint) with the shipped recording's
+    /// noise: `(A, T, H, Q, V)`, `T` the map through which `A` reads the state.
+    fn two_beam_filter_model(walk: f64) -> FilterModel {
         use crate::integrate::Stepper;
         use crate::setup::Setup;
         let toml = std::fs::read_to_string(concat!(
@@ -1218,6 +1304,10 @@ dt_s = 0.001
         A.view_mut((0, 0), (3 * n, 3 * n)).copy_from(&phi);
         A.view_mut((0, 3 * n), (3 * n, 1)).copy_from(&gamma);
         A[(3 * n, 3 * n)] = 1.0;
+        let mut T = DMatrix::zeros(2 * n + 1, nz);
+        T.view_mut((0, 0), (2 * n, 3 * n))
+            .copy_from(&stepper.predictor_map());
+        T[(2 * n, 3 * n)] = 1.0;
         let mut B = DMatrix::zeros(nz, 1);
         B.view_mut((0, 0), (3 * n, 1)).copy_from(&gamma);
         B[(3 * n, 0)] = 1.0;
@@ -1227,7 +1317,7 @@ dt_s = 0.001
             f64::from(u8::from(stations.state_index(i, n) == j))
         });
         // The shipped friction recording's channel variances (displacement, velocity at
-        // nodes 1, 3, 5, 7, 9, 11) and force walks around those its tuning chose.
+        // nodes 1, 3, 5, 7, 9, 11).
         let variances = [
             3.2e-4, 7.3e4, 1.1e-4, 2.2e4, 1.8e-5, 1.5e3, 8.8e-6, 1.7e3, 6.0e-5, 2.2e4, 2.1e-4,
             7.1e4,
@@ -1235,11 +1325,22 @@ dt_s = 0.001
         assert_eq!(variances.len(), m);
         let V = DMatrix::from_diagonal(&DVector::from_row_slice(&variances));
         let scale = force_scale_of(&lin);
+        let mut Q = &B * B.transpose() * walk * walk;
+        let qx = &gamma_all * gamma_all.transpose() * (MODEL_ERROR_RELATIVE * scale).powi(2);
+        let mut qv = Q.view_mut((0, 0), (3 * n, 3 * n));
+        qv += qx;
+        (A, T, H, Q, V)
+    }
+
+    /// On the two-beam filter model the doubling stops before its cap and its answer is a
+    /// fixed point of the Riccati step to round-off. Before it stopped at its round-off
+    /// floor it ran on to the 80-step cap on some of them, its update doubling every step
+    /// from ~1e-12 to ~1e-6 of the answer. (Force walks around those the shipped
+    /// recording's tuning chose.)
+    #[test]
+    fn doubling_stops_at_its_round_off_floor_on_an_undamped_model() {
         for walk in [2.0e4, 3.4e4, 1.056e5, 1.065e5, 1.096e5, 1.75e5, 3.0e5] {
-            let mut Q = &B * B.transpose() * walk * walk;
-            let qx = &gamma_all * gamma_all.transpose() * (MODEL_ERROR_RELATIVE * scale).powi(2);
-            let mut qv = Q.view_mut((0, 0), (3 * n, 3 * n));
-            qv += qx;
+            let (A, _, H, Q, V) = two_beam_filter_model(walk);
             let (P, steps) = filter_dare_doubling(&A, &H, &Q, &V, DARE_MAX_STEPS);
             assert!(steps < DARE_MAX_STEPS, "walk {walk:e}: {steps} steps");
             // One plain Riccati step from the answer moves it by round-off only.
@@ -1251,6 +1352,46 @@ dt_s = 0.001
                 residual <= 1e-6,
                 "walk {walk:e}: Riccati residual {residual:e}"
             );
+        }
+    }
+
+    /// The Riccati equation solved through the Newmark predictors (23 coordinates instead
+    /// of 34) gives the full equation's covariance: its innovation covariance `H P Hᵀ + V`
+    /// (all the likelihood and the gain's data side see) to 1e-6, and `P` is a fixed point
+    /// of the full Riccati step to the same round-off as the full solve's. A transition
+    /// that does not factor through `T` is solved in full, to the bit.
+    #[test]
+    fn the_factored_riccati_solve_equals_the_full_one() {
+        for walk in [3.4e4, 1.065e5, 3.0e5] {
+            let (A, T, H, Q, V) = two_beam_filter_model(walk);
+            let full = solve_filter_dare(&A, &H, &Q, &V, Some(2_000));
+            let reduced = solve_filter_dare_factored(&A, &T, &H, &Q, &V, Some(2_000));
+            let innovation = |p: &DMatrix<f64>| &H * p * H.transpose() + &V;
+            let (s_full, s_red) = (innovation(&full), innovation(&reduced));
+            let gap = (&s_red - &s_full).amax() / s_full.amax();
+            assert!(
+                gap <= 1e-6,
+                "walk {walk:e}: innovation covariance off by {gap:e}"
+            );
+            let (p_steady, _) = filter_dare_doubling(&A, &H, &Q, &V, DARE_MAX_STEPS);
+            let steady = solve_filter_dare_factored(&A, &T, &H, &Q, &V, None);
+            let gap = (&innovation(&steady) - innovation(&p_steady)).amax() / s_full.amax();
+            assert!(gap <= 1e-6, "walk {walk:e}: steady state off by {gap:e}");
+            let S = innovation(&steady);
+            let K = &A * &steady * H.transpose() * S.try_inverse().unwrap();
+            let next = &A * &steady * A.transpose() - &K * &H * &steady * A.transpose() + &Q;
+            let residual = (&next - &steady).amax() / steady.amax();
+            assert!(
+                residual <= 1e-6,
+                "walk {walk:e}: Riccati residual {residual:e}"
+            );
+            // A transition that reads the acceleration freely: no factoring, the full solve.
+            let n = (T.nrows() - 1) / 2;
+            let mut free = A.clone();
+            free[(0, 2 * n + 5)] += 0.1;
+            let a = solve_filter_dare_factored(&free, &T, &H, &Q, &V, Some(2_000));
+            let b = solve_filter_dare(&free, &H, &Q, &V, Some(2_000));
+            assert_eq!(a, b);
         }
     }
 

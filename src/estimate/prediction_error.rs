@@ -28,7 +28,7 @@
 
 use nalgebra::{DMatrix, DVector};
 
-use super::kalman::{force_scale_of, solve_filter_dare, spectral_radius_by_powers};
+use super::kalman::{force_scale_of, solve_filter_dare_factored, spectral_radius_by_powers};
 use super::output_error::scaled_inverse;
 use crate::integrate::Stepper;
 use crate::model::Model;
@@ -336,7 +336,8 @@ pub fn predictor(
         if idx == j { 1.0 } else { 0.0 }
     });
     let V = DMatrix::from_diagonal(&DVector::from_iterator(m, sigma.iter().map(|s| s * s)));
-    let P = solve_filter_dare(&phi, &H, &Q, &V, Some(samples));
+    // Φ reads the state only through the first sub-step's predictors (rank 2n).
+    let P = solve_filter_dare_factored(&phi, &stepper.predictor_map(), &H, &Q, &V, Some(samples));
     let S = &H * &P * H.transpose() + &V;
     let S = (&S + S.transpose()) * 0.5;
     let chol = S.cholesky().ok_or(SimulateError::Singular)?;
