@@ -894,6 +894,11 @@ pub fn solve_filter_dare(
 /// Newmark maps is ~1e-15 of their entries); above it, the full solve.
 const FACTOR_TOLERANCE: f64 = 1e-11;
 
+/// Largest condition of the reduced measurement covariance (scaled to a unit diagonal) at
+/// which [`solve_filter_dare_factored`] solves the reduced equation: its differences then
+/// keep at least 8 of the 16 digits.
+const REDUCED_CONDITION_LIMIT: f64 = 1e8;
+
 /// [`solve_filter_dare`] for a transition that depends on the state only through `r < nz`
 /// coordinates `s = T z` (`T`: r × nz, full row rank), i.e. `A = Ā T`: the Riccati
 /// equation is solved in those coordinates and the full a-priori covariance rebuilt from
@@ -954,6 +959,18 @@ fn reduced_dare(
     let q_s = T * &qt;
     let n_cross = qt.transpose() * H.transpose();
     let r_o = crate::dense::symmetrized(&(H * Q * H.transpose() + V));
+    // The reduced equation inverts `R = H Q Hᵀ + V`, not `V`: when the process noise seen
+    // by the channels is far above their noise in some direction (noise-free data, whose
+    // noise levels sit at the floor), `Q'` and `Ã'` are differences that lose the digits
+    // `R`'s condition takes; the full equation is then solved. The condition is that of
+    // `R` scaled to a unit diagonal (channels in different units are not ill-conditioning).
+    let d: Vec<f64> = r_o.diagonal().iter().map(|x| x.sqrt().recip()).collect();
+    let scaled = DMatrix::from_fn(r_o.nrows(), r_o.ncols(), |i, j| r_o[(i, j)] * d[i] * d[j]);
+    let l = scaled.cholesky()?.l().diagonal();
+    let condition = (l.max() / l.min()).powi(2);
+    if condition.is_nan() || condition > REDUCED_CONDITION_LIMIT {
+        return None;
+    }
     let r_chol = r_o.clone().cholesky()?;
     let a_std = &a_red - &n_cross * r_chol.solve(&c_red);
     let q_std = crate::dense::symmetrized(&(&q_s - &n_cross * r_chol.solve(&n_cross.transpose())));
@@ -1391,6 +1408,14 @@ dt_s = 0.001
             free[(0, 2 * n + 5)] += 0.1;
             let a = solve_filter_dare_factored(&free, &T, &H, &Q, &V, Some(2_000));
             let b = solve_filter_dare(&free, &H, &Q, &V, Some(2_000));
+            assert_eq!(a, b);
+            // Noise-free data (noise at the 1e-7 floor): the channels' process noise is
+            // 1e20 times theirs in some directions, the reduced equation would lose its
+            // digits, and the full one is solved (a replay of noise-free spring data
+            // diverged at its first sample when it was not).
+            let floor = &V * 1e-20;
+            let a = solve_filter_dare_factored(&A, &T, &H, &Q, &floor, Some(2_000));
+            let b = solve_filter_dare(&A, &H, &Q, &floor, Some(2_000));
             assert_eq!(a, b);
         }
     }
