@@ -161,10 +161,7 @@ fn maximise_log_batched(
             values.get(best + 1).map(|v| (ts[best + 1], -v)),
         ],
         refine,
-        &mut |ts: &[f64]| {
-            let xs: Vec<f64> = ts.iter().map(|t| t.exp()).collect();
-            eval(&xs).into_iter().map(|v| -finite(v)).collect()
-        },
+        &mut |t| -finite(eval(&[t.exp()])[0]),
     );
     (peak.0.exp(), -peak.1, grid + count)
 }
@@ -173,16 +170,14 @@ fn maximise_log_batched(
 /// point `x` (inside, its value known) and up to two other known points, for at most
 /// `max_evals` evaluations of `g`, to the absolute tolerance [`LOG_TOLERANCE`]. `+∞` values
 /// are allowed (a failed run): the parabola is then not trusted and the step is golden.
-/// `g` evaluates a batch of points (in parallel when the caller can): near convergence a
-/// step's predictable successor is evaluated with it (below). Returns the best point seen
-/// and the number of evaluations.
+/// Returns the best point seen and the number of evaluations.
 fn brent_minimise(
     lo: f64,
     hi: f64,
     x: (f64, f64),
     known: [Option<(f64, f64)>; 2],
     max_evals: usize,
-    g: &mut dyn FnMut(&[f64]) -> Vec<f64>,
+    g: &mut dyn FnMut(f64) -> f64,
 ) -> ((f64, f64), usize) {
     const GOLD: f64 = 0.381_966_011_250_105_1; // (3 − √5) / 2
     let tol = LOG_TOLERANCE;
@@ -212,8 +207,6 @@ fn brent_minimise(
             break;
         }
         let mut golden = true;
-        // The parabola's own step, before it is rounded up to the tolerance.
-        let mut parabolic = f64::NAN;
         if e.abs() > tol && fx.is_finite() && fw.is_finite() && fv.is_finite() {
             let r = (x - w) * (fx - fv);
             let mut q = (x - v) * (fx - fw);
@@ -227,7 +220,6 @@ fn brent_minimise(
             if q > 0.0 && p.abs() < (0.5 * q * e_prev).abs() && p > q * (a - x) && p < q * (b - x) {
                 e = d;
                 d = p / q;
-                parabolic = d;
                 let u = x + d;
                 if u - a < tol2 || b - u < tol2 {
                     d = tol.copysign(xm - x);
@@ -244,52 +236,29 @@ fn brent_minimise(
         } else {
             x + tol.copysign(d)
         };
-        // Near convergence the step after this one is predictable: the parabola puts the
-        // peak within a tolerance of `x`, `u` is a tolerance away, and the step that follows
-        // closes the bracket on the side left open — beyond `u` if `u` turns out better
-        // (the parabola's step is at least half the tolerance), on the other side of `x`
-        // if not. That point is evaluated together with `u` (two runs on two cores in the
-        // time of one); its value enters the bracket as a next step's would.
-        let side = (u - x).signum();
-        let speculative = (!golden && parabolic.abs() < 2.0 * tol && evals + 2 <= max_evals)
-            .then(|| {
-                if parabolic.abs() >= 0.5 * tol {
-                    u + side * tol
-                } else {
-                    x - side * tol
-                }
-            })
-            .filter(|&s| s > a && s < b);
-        let points: Vec<f64> = std::iter::once(u).chain(speculative).collect();
-        let values = g(&points);
-        evals += points.len();
-        for (k, (&u, &fu)) in points.iter().zip(&values).enumerate() {
-            // The speculative point only while it is inside the bracket `u` left.
-            if k > 0 && !(u > a && u < b) {
-                continue;
-            }
-            let fu = if fu.is_nan() { f64::INFINITY } else { fu };
-            if fu <= fx {
-                if u >= x {
-                    a = x;
-                } else {
-                    b = x;
-                }
-                (v, fv) = (w, fw);
-                (w, fw) = (x, fx);
-                (x, fx) = (u, fu);
+        let fu = g(u);
+        let fu = if fu.is_nan() { f64::INFINITY } else { fu };
+        evals += 1;
+        if fu <= fx {
+            if u >= x {
+                a = x;
             } else {
-                if u < x {
-                    a = u;
-                } else {
-                    b = u;
-                }
-                if fu <= fw || w == x {
-                    (v, fv) = (w, fw);
-                    (w, fw) = (u, fu);
-                } else if fu <= fv || v == x || v == w {
-                    (v, fv) = (u, fu);
-                }
+                b = x;
+            }
+            (v, fv) = (w, fw);
+            (w, fw) = (x, fx);
+            (x, fx) = (u, fu);
+        } else {
+            if u < x {
+                a = u;
+            } else {
+                b = u;
+            }
+            if fu <= fw || w == x {
+                (v, fv) = (w, fw);
+                (w, fw) = (u, fu);
+            } else if fu <= fv || v == x || v == w {
+                (v, fv) = (u, fu);
             }
         }
     }
@@ -372,32 +341,6 @@ mod tests {
                 "peak {peak}: found {x} ({fx}) after {count}"
             );
             assert!(count <= 9 + 12, "{count}");
-        }
-    }
-
-    /// Near convergence a step and its predictable successor are evaluated as one batch:
-    /// on skewed peaks the refinement takes fewer batches than evaluations, and the peak is
-    /// still found to the tolerance.
-    #[test]
-    fn maximise_log_evaluates_the_last_steps_in_pairs() {
-        for peak in [0.37f64, 3.0, 41.0, 900.0] {
-            let t0 = peak.ln();
-            let f = |x: f64| {
-                let t = x.ln() - t0;
-                -(t * t) + 0.4 * t * t * t - 0.2 * (t * t).powi(2)
-            };
-            let mut batches = 0;
-            let (x, _, count) = maximise_log_batched(1e-4, 1e4, 9, 12, &mut |xs: &[f64]| {
-                batches += 1;
-                xs.iter().map(|&x| f(x)).collect()
-            });
-            assert!((x.ln() - t0).abs() <= 2.0 * LOG_TOLERANCE, "peak {peak}: {x}");
-            let refinement = count - 9;
-            assert!(
-                batches - 1 < refinement,
-                "peak {peak}: {refinement} evaluations in {} batches",
-                batches - 1
-            );
         }
     }
 
