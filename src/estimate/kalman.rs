@@ -915,8 +915,10 @@ const REDUCED_CONDITION_LIMIT: f64 = 1e8;
 /// `Ã' = Ã − N R⁻¹ C̃`, `Q' = Q_s − N R⁻¹ Nᵀ` it is the standard filter DARE in
 /// `(Ã', C̃, Q', R)`, and `P = Ā Π Āᵀ + Q`. Exact: the innovations and their covariance
 /// `H P Hᵀ + V` are those of the full equation (the horizon cap counts one step more:
-/// `Π` after 2ᵏ steps is `P` after 2ᵏ + 1). When `A` does not factor through `T` to
-/// [`FACTOR_TOLERANCE`], or a reduced matrix is singular, the full equation is solved.
+/// `Π` after 2ᵏ steps is `P` after 2ᵏ + 1). The full equation is solved instead when `A`
+/// does not factor through `T` to [`FACTOR_TOLERANCE`], when `R` is too ill-conditioned
+/// for the differences above ([`REDUCED_CONDITION_LIMIT`]: noise-free data), or when a
+/// reduced matrix is singular.
 pub fn solve_filter_dare_factored(
     A: &DMatrix<f64>,
     T: &DMatrix<f64>,
@@ -926,10 +928,7 @@ pub fn solve_filter_dare_factored(
     horizon: Option<usize>,
 ) -> DMatrix<f64> {
     let max_steps = horizon.map_or(DARE_MAX_STEPS, doubling_steps_for);
-    match reduced_dare(A, T, H, Q, V, max_steps) {
-        Some(p) => p,
-        None => filter_dare_doubling(A, H, Q, V, max_steps).0,
-    }
+    reduced_dare(A, T, H, Q, V, max_steps).unwrap_or_else(|| solve_filter_dare(A, H, Q, V, horizon))
 }
 
 /// The reduced solve of [`solve_filter_dare_factored`]; `None` when it does not apply.
