@@ -19,7 +19,9 @@
 //!
 //! plus a small model-error force at every DOF (`model_error` × excitation RMS) so every
 //! mode is stabilisable. The steady-state Riccati equation is solved by the structure-
-//! preserving doubling algorithm (quadratic convergence), once per model.
+//! preserving doubling algorithm (quadratic convergence), once per model, in the 2n + q
+//! coordinates `(ũ, ṽ, R)` through which Φ reads the state (the first Newmark sub-step's
+//! predictors: Φ has rank 2n), see [`solve_filter_dare_factored`].
 //!
 //! Tuning, derived from the data: `σ_y` per channel from the noise estimate of the
 //! recording (or the setup's `noise_std`); `σ_R` by maximising the innovation likelihood
