@@ -467,3 +467,53 @@ fn accelerometers_only_coulomb_record_cut_in_motion_is_flagged() {
         }
     }
 }
+
+/// Mixed layout (accelerations, displacements and velocities), Coulomb friction + spring, a
+/// record cut from a test in motion (samples 500–2,499 of seed 3, 64-sub-step data, 50 %
+/// noise). At this noise the residual-force stage is refused and the output-error stage
+/// starts from the friction × stiffness scan; its free run from rest misfits the cut record,
+/// which the scan path hands back (`identify::scan`: `motion_in_record` set, "`identify`
+/// runs again and refuses") — checked with a print on that branch when this test was made
+/// (twenty-eighth session; the path had no test before). Refused, with the figure: the start
+/// state refitted to an observer's innovations removes 6,716 from their whitened cost
+/// against a limit of 111.
+#[test]
+fn mixed_layout_coulomb_record_cut_in_motion_is_refused_from_the_scan_path() {
+    let s = setup(
+        "two-beam-mixed.toml",
+        &["sign(v)", "u"],
+        &[3000.0, 3.0e5],
+        16,
+    );
+    let d = sim(&s, 2500, 64, Noise::Additive(0.5), 3);
+    let cut = Simulated {
+        excitation: d.excitation[500..].to_vec(),
+        response: d.response[500..].to_vec(),
+        ..d
+    };
+    let text = match try_run(&s, &cut, EstimatorKind::Kalman) {
+        Err(e) => e.to_string(),
+        Ok(id) => panic!(
+            "answered {:?}",
+            id.final_parameters()
+                .unwrap()
+                .iter()
+                .map(|p| (p.value - p.truth.unwrap()) / p.std_error)
+                .collect::<Vec<_>>()
+        ),
+    };
+    assert!(
+        text.contains("starts in motion") && text.contains("record from rest"),
+        "{text}"
+    );
+    // The figures: the cost the refitted start removes, far beyond the limit it names.
+    let figure = |after: &str| -> f64 {
+        text.split(after)
+            .nth(1)
+            .and_then(|t| t.split_whitespace().next())
+            .and_then(|t| t.trim_end_matches([',', ';']).parse().ok())
+            .unwrap_or_else(|| panic!("no figure after {after:?} in: {text}"))
+    };
+    let (removed, limit) = (figure("removes "), figure("beyond the limit "));
+    assert!(removed > 10.0 * limit, "{text}");
+}
