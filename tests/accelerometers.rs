@@ -411,6 +411,20 @@ fn mixed_layout_coulomb_friction_at_high_noise_falls_back_to_a_scan() {
     );
 }
 
+/// The Coulomb `sign(v), u` law (truth 3,000 N, 3e5 N/m; 16 model sub-steps) on `layout`,
+/// and samples 500–2,499 of a 2,500-sample simulation (64 sub-steps, additive noise at
+/// `noise`, `seed`): a record cut from a test in motion.
+fn coulomb_record_cut_in_motion(layout: &str, noise: f64, seed: u64) -> (Setup, Simulated) {
+    let s = setup(layout, &["sign(v)", "u"], &[3000.0, 3.0e5], 16);
+    let d = sim(&s, 2500, 64, Noise::Additive(noise), seed);
+    let cut = Simulated {
+        excitation: d.excitation[500..].to_vec(),
+        response: d.response[500..].to_vec(),
+        ..d
+    };
+    (s, cut)
+}
+
 /// Accelerometers only, Coulomb friction + spring, a record cut from a test in motion
 /// (samples 500–2,499 of seed 6, 64-sub-step data, 10 % noise). No displacement or velocity
 /// channel can show the motion at the first sample, and the output-error stage (from a scan:
@@ -423,18 +437,7 @@ fn mixed_layout_coulomb_friction_at_high_noise_falls_back_to_a_scan() {
 /// parameter within 4 of its stated errors (a refusal as a record in motion passes too).
 #[test]
 fn accelerometers_only_coulomb_record_cut_in_motion_is_flagged() {
-    let s = setup(
-        "two-beam-accel.toml",
-        &["sign(v)", "u"],
-        &[3000.0, 3.0e5],
-        16,
-    );
-    let d = sim(&s, 2500, 64, Noise::Additive(0.1), 6);
-    let cut = Simulated {
-        excitation: d.excitation[500..].to_vec(),
-        response: d.response[500..].to_vec(),
-        ..d
-    };
+    let (s, cut) = coulomb_record_cut_in_motion("two-beam-accel.toml", 0.1, 6);
     match try_run(&s, &cut, EstimatorKind::Kalman) {
         Err(e) => {
             let text = e.to_string();
@@ -479,18 +482,7 @@ fn accelerometers_only_coulomb_record_cut_in_motion_is_flagged() {
 /// against a limit of 111.
 #[test]
 fn mixed_layout_coulomb_record_cut_in_motion_is_refused_from_the_scan_path() {
-    let s = setup(
-        "two-beam-mixed.toml",
-        &["sign(v)", "u"],
-        &[3000.0, 3.0e5],
-        16,
-    );
-    let d = sim(&s, 2500, 64, Noise::Additive(0.5), 3);
-    let cut = Simulated {
-        excitation: d.excitation[500..].to_vec(),
-        response: d.response[500..].to_vec(),
-        ..d
-    };
+    let (s, cut) = coulomb_record_cut_in_motion("two-beam-mixed.toml", 0.5, 3);
     let text = match try_run(&s, &cut, EstimatorKind::Kalman) {
         Err(e) => e.to_string(),
         Ok(id) => panic!(
