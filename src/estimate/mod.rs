@@ -297,6 +297,22 @@ pub(crate) fn one_sided_difference(basis: &Basis, value: f64, h: f64) -> bool {
     matches!(basis, Basis::SignU | Basis::SignV) && value - h < 0.0
 }
 
+/// Half-widths of a finite-difference Jacobian's steps at `p`: `frac` of each parameter's
+/// scale (its standard error or a start's), at least 1e-7 of its value and √(smallest
+/// positive number), so that no step vanishes. Shared by the output-error and
+/// prediction-error Jacobians (their fractions differ).
+pub(crate) fn difference_steps(frac: f64, scales: &[f64], p: &[f64]) -> Vec<f64> {
+    scales
+        .iter()
+        .zip(p)
+        .map(|(s, v)| {
+            (frac * s.abs())
+                .max(1e-7 * v.abs())
+                .max(f64::MIN_POSITIVE.sqrt())
+        })
+        .collect()
+}
+
 /// The displaced points of a central-difference Jacobian at `p` with half-widths `steps`, in
 /// the order the Jacobians difference them: per parameter `p + h e_j`, then `p − h e_j`
 /// unless the difference is one-sided ([`one_sided_difference`]). The output-error and

@@ -150,13 +150,7 @@ pub fn sensitivities(
     } else {
         1e-3
     };
-    let steps: Vec<f64> = (0..p0.len())
-        .map(|j| {
-            (frac * scales[j].abs())
-                .max(1e-7 * p0[j].abs())
-                .max(f64::MIN_POSITIVE.sqrt())
-        })
-        .collect();
+    let steps = super::difference_steps(frac, scales, &p0);
     // The base point and every displaced one are independent simulations: run on parallel
     // threads ([`crate::par`]), then differenced in the parameters' order (a failure is
     // reported for the first point that failed in that order, as one after the other).

@@ -716,13 +716,7 @@ fn jacobian(
     // `p` with this predictor when the caller has them (an accepted descent step's trial
     // run, the Jacobian just made at the same point) — the same run, not made twice: four
     // parameters' central differences are then 8 runs, 4 rounds on two cores instead of 5.
-    let steps: Vec<f64> = (0..p.len())
-        .map(|j| {
-            (SECANT * scales[j].abs())
-                .max(1e-7 * p[j].abs())
-                .max(f64::MIN_POSITIVE.sqrt())
-        })
-        .collect();
+    let steps = super::difference_steps(SECANT, scales, p);
     let t0 = std::time::Instant::now();
     let have_base = base.is_some();
     let mut points: Vec<Vec<f64>> = if have_base {

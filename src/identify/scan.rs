@@ -872,24 +872,24 @@ pub(super) fn identify_from_scan(
         let others = grid_candidates(setup, model, &basis, &start, exc, resp, sigma, sub);
         // Each candidate grown on its own thread (its growth does not depend on the others),
         // then taken in the candidates' order: a candidate equal to the start as it stands
-        // by then is passed over, as one after the other.
+        // by then is passed over, as one after the other. One equal to the first start is
+        // not grown ahead (it is passed over unless an earlier candidate replaced the
+        // start; then it is grown in its turn).
         let first_start = start.clone();
-        let todo: Vec<Vec<f64>> = others
-            .into_iter()
-            .map(|(p, _)| p)
-            .filter(|p| *p != first_start)
-            .collect();
-        let grown_all = crate::par::map(&todo, |raw| {
+        let todo: Vec<Vec<f64>> = others.into_iter().map(|(p, _)| p).collect();
+        let grow = |raw: &Vec<f64>| {
             let mut p = raw.clone();
             let mut sc = scale_of(&p);
             let g = grow_start(setup, model, data, opts, sigma, len, &mut p, &mut sc);
             let c = whole(&p);
             (p, sc, g, c)
-        });
-        for (raw, (p, sc, g, c)) in todo.iter().zip(grown_all) {
+        };
+        let grown_all = crate::par::map(&todo, |raw| (*raw != first_start).then(|| grow(raw)));
+        for (raw, ahead) in todo.iter().zip(grown_all) {
             if *raw == start {
                 continue;
             }
+            let (p, sc, g, c) = ahead.unwrap_or_else(|| grow(raw));
             candidates_tried += 1;
             grown_points.push(p.clone());
             if c < best {
