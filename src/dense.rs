@@ -38,6 +38,15 @@ pub enum Op {
 /// # Panics
 /// When the shapes do not match (`y` has `A`'s rows, `x` its columns), as nalgebra does.
 pub fn gemv(y: &mut DVector<f64>, a: &DMatrix<f64>, x: &DVector<f64>, op: Op) {
+    gemv_slices(y.as_mut_slice(), a, x.as_slice(), op);
+}
+
+/// [`gemv`] on plain slices (`y` has `A`'s rows, `x` its columns): the per-sample maps keep
+/// their inputs side by side in one work vector and multiply a part of it.
+///
+/// # Panics
+/// When the shapes do not match, as nalgebra does.
+pub fn gemv_slices(y: &mut [f64], a: &DMatrix<f64>, x: &[f64], op: Op) {
     let (rows, cols) = a.shape();
     assert!(
         y.len() == rows && x.len() == cols,
@@ -47,14 +56,43 @@ pub fn gemv(y: &mut DVector<f64>, a: &DMatrix<f64>, x: &DVector<f64>, op: Op) {
     if std::arch::is_x86_feature_detected!("avx") {
         // SAFETY: the CPU has AVX (checked above); the slices have the lengths the kernel
         // indexes (`rows`, `rows × cols` column-major, `cols`: asserted above).
-        unsafe { gemv_avx(y.as_mut_slice(), a.as_slice(), rows, cols, x.as_slice(), op) };
+        unsafe { gemv_avx(y, a.as_slice(), rows, cols, x, op) };
         return;
     }
+    let mut y = nalgebra::DVectorViewMut::from_slice(y, rows);
+    let x = nalgebra::DVectorView::from_slice(x, cols);
     match op {
-        Op::Set => y.gemv(1.0, a, x, 0.0),
-        Op::Add => y.gemv(1.0, a, x, 1.0),
-        Op::Subtract => y.gemv(-1.0, a, x, 1.0),
+        Op::Set => y.gemv(1.0, a, &x, 0.0),
+        Op::Add => y.gemv(1.0, a, &x, 1.0),
+        Op::Subtract => y.gemv(-1.0, a, &x, 1.0),
     }
+}
+
+/// Whether every entry is finite (neither infinite nor NaN). Why not
+/// `iter().all(f64::is_finite)`: that branches per entry; this reads every exponent and
+/// combines them without a branch (vectorised), for the per-sample divergence checks.
+pub fn all_finite(v: &[f64]) -> bool {
+    const EXPONENT: u64 = 0x7ff0_0000_0000_0000;
+    v.iter().fold(0u64, |bad, x| {
+        bad | u64::from(x.to_bits() & EXPONENT == EXPONENT)
+    }) == 0
+}
+
+/// The blocks side by side, `[A₀ A₁ …]` (equal rows). Why: `[A₀ A₁] (x₀; x₁)` through
+/// [`gemv`] is, element for element, `A₀ x₀` followed by `+ A₁ x₁` — the same rounded
+/// products added in the same order as two calls (`Op::Set` then `Op::Add`), so a map of
+/// several inputs costs one call and one pass over `y`, bit for bit the same.
+pub fn side_by_side(blocks: &[&DMatrix<f64>]) -> DMatrix<f64> {
+    let rows = blocks.first().map_or(0, |b| b.nrows());
+    let cols = blocks.iter().map(|b| b.ncols()).sum();
+    let mut out = DMatrix::zeros(rows, cols);
+    let mut at = 0;
+    for b in blocks {
+        debug_assert_eq!(b.nrows(), rows);
+        out.columns_mut(at, b.ncols()).copy_from(b);
+        at += b.ncols();
+    }
+    out
 }
 
 /// The AVX kernel of [`gemv`]: rows in blocks of up to 32 (eight registers of four), the

@@ -744,9 +744,13 @@ pub fn tune_kalman(
             .map(|(x, e)| if *e { x * s } else { *x })
             .collect()
     };
-    // The innovation log-likelihood at a noise scale, random-walk std and model-error std.
+    // The innovation log-likelihood at a noise scale, random-walk std and model-error std
+    // (the searches come back to points they have run: remembered).
+    let remembered = crate::estimate::tuning::Remembered::default();
     let likelihood = |s: f64, w: f64, e: f64| {
-        kalman_log_likelihood(setup, &with_terms, params, opts, &scaled(s), data, w, e)
+        remembered.value(&[s, w, e], || {
+            kalman_log_likelihood(setup, &with_terms, params, opts, &scaled(s), data, w, e)
+        })
     };
     let tunes_scale = opts.tune_noise_scale && estimated.iter().any(|&e| e);
     // A search within a factor of 30 either way of a value already found (half-decade grid of

@@ -50,7 +50,7 @@ impl State {
     pub fn is_finite(&self) -> bool {
         [&self.u, &self.v, &self.a]
             .iter()
-            .all(|w| w.as_slice().iter().all(|x| x.is_finite()))
+            .all(|w| crate::dense::all_finite(w.as_slice()))
     }
 
     /// Value of one station channel.

@@ -600,21 +600,24 @@ impl TruthSystem {
     ) -> Option<()> {
         let n = self.model.n();
         let (q, steps) = (map.q, map.substeps);
-        for j in 0..map.p0.len() {
-            map.p0[j] = pa.get(j).copied().unwrap_or(0.0);
-            map.p1[j] = pb.get(j).copied().unwrap_or(0.0);
+        let ne = (map.input.len() - 3 * n - q * steps) / 2;
+        {
+            let input = map.input.as_mut_slice();
+            input[..n].copy_from_slice(s.u.as_slice());
+            input[n..2 * n].copy_from_slice(s.v.as_slice());
+            input[2 * n..3 * n].copy_from_slice(s.a.as_slice());
+            for j in 0..ne {
+                input[3 * n + j] = pa.get(j).copied().unwrap_or(0.0);
+                input[3 * n + ne + j] = pb.get(j).copied().unwrap_or(0.0);
+            }
         }
-        map.x.rows_mut(0, n).copy_from(&s.u);
-        map.x.rows_mut(n, n).copy_from(&s.v);
-        map.x.rows_mut(2 * n, n).copy_from(&s.a);
-        crate::dense::gemv(
-            &mut map.free,
-            &map.free_state,
-            &map.x,
+        let forces_at = 3 * n + 2 * ne;
+        crate::dense::gemv_slices(
+            map.free.as_mut_slice(),
+            &map.free_map,
+            &map.input.as_slice()[..forces_at],
             crate::dense::Op::Set,
         );
-        crate::dense::gemv(&mut map.free, &map.free_p0, &map.p0, crate::dense::Op::Add);
-        crate::dense::gemv(&mut map.free, &map.free_p1, &map.p1, crate::dense::Op::Add);
         for j in 0..steps {
             for c in 0..3 * q {
                 // The earlier sub-steps' forces: impulse k = j − i from sub-step i, as one
@@ -634,18 +637,15 @@ impl TruthSystem {
             }
             self.solve_forces()?;
             for m in 0..q {
-                map.forces[q * j + m] = self.work.f[m];
+                map.input[forces_at + q * j + m] = self.work.f[m];
                 map.forces_reversed[m][steps - 1 - j] = self.work.f[m];
             }
         }
-        crate::dense::gemv(&mut map.next, &map.phi, &map.x, crate::dense::Op::Set);
-        crate::dense::gemv(&mut map.next, &map.g0, &map.p0, crate::dense::Op::Add);
-        crate::dense::gemv(&mut map.next, &map.g1, &map.p1, crate::dense::Op::Add);
         crate::dense::gemv(
             &mut map.next,
-            &map.force_to_end,
-            &map.forces,
-            crate::dense::Op::Add,
+            &map.end_map,
+            &map.input,
+            crate::dense::Op::Set,
         );
         s.u.copy_from(&map.next.rows(0, n));
         s.v.copy_from(&map.next.rows(n, n));
@@ -1199,17 +1199,14 @@ impl SampleStepper {
 /// (a reversal or a stick inside the sample, a joint at rest) the sample is stepped by the
 /// force solve.
 struct SlipSampleMap {
-    phi: DMatrix<f64>,
-    g0: DMatrix<f64>,
-    g1: DMatrix<f64>,
-    /// The state's response to the constant connection forces `b` (`3n × q`).
-    gb: DMatrix<f64>,
+    /// The sample's end state from its inputs `(x; p_{i−1}; p_i; b)` ([`Self::input`]):
+    /// `[Φ Γ₀ Γ₁ Γ_b]` side by side ([`crate::dense::side_by_side`]), `Γ_b` the state's
+    /// response to the constant connection forces `b` (`3n × q`).
+    step: DMatrix<f64>,
     /// `δ_j` (or `δ̇_j`) of each friction at the end of sub-step `j = 1…L`, stacked
-    /// (`r` rows per sub-step), as a function of the start state, `p_{i−1}`, `p_i` and `b`.
-    check_state: DMatrix<f64>,
-    check_p0: DMatrix<f64>,
-    check_p1: DMatrix<f64>,
-    check_b: DMatrix<f64>,
+    /// (`r` rows per sub-step), from the same inputs: the blocks of the start state,
+    /// `p_{i−1}`, `p_i` and `b` side by side.
+    check: DMatrix<f64>,
     /// Per check row: the absolute row sums of the four blocks (`Σ|terms| ≤ Σ rowsum·‖·‖∞`,
     /// the scale of its round-off).
     row_sums: Vec<[f64; 4]>,
@@ -1217,18 +1214,17 @@ struct SlipSampleMap {
     largest_row_sums: [f64; 4],
     /// Per friction: its connection, on the rate (`sign(v)`) or the deformation, its level.
     friction: Vec<(usize, bool, f64)>,
-    /// `δ` (or `δ̇`) of each friction from the state, transposed (`3n × r`: a friction's
-    /// row is a contiguous column).
-    select_t: DMatrix<f64>,
+    /// `δ` (or `δ̇`) of each friction from the state: its non-zero coefficients
+    /// `(state index, coefficient)` in the order of the index (the dense row's sum without
+    /// its zero terms, which cannot change a non-zero sum).
+    select: Vec<Vec<(usize, f64)>>,
     /// The `const` terms' force per connection.
     const_force: DVector<f64>,
+    /// The inputs side by side, `(x; p_{i−1}; p_i; b)` (`3n + 2 ne + q`).
+    input: DVector<f64>,
     /// Work vectors.
-    b: DVector<f64>,
     checks: DVector<f64>,
-    x: DVector<f64>,
     next: DVector<f64>,
-    p0: DVector<f64>,
-    p1: DVector<f64>,
     signs: Vec<f64>,
 }
 
@@ -1307,6 +1303,14 @@ impl SlipSampleMap {
                 select[(i, col + d)] = lc[(d, ci)];
             }
         }
+        let select_taps = (0..r)
+            .map(|i| {
+                (0..3 * n)
+                    .filter(|&j| select[(i, j)] != 0.0)
+                    .map(|j| (j, select[(i, j)]))
+                    .collect()
+            })
+            .collect();
         let L = substeps;
         let mut check_state = DMatrix::zeros(r * L, 3 * n);
         let mut check_p0 = DMatrix::zeros(r * L, ne);
@@ -1343,26 +1347,18 @@ impl SlipSampleMap {
             std::array::from_fn(|k| acc[k].max(s[k]))
         });
         let phi = matrix_power(T, L);
+        use crate::dense::side_by_side;
         Ok(Some(Self {
             largest_row_sums,
-            phi,
-            g0,
-            g1,
-            gb,
-            check_state,
-            check_p0,
-            check_p1,
-            check_b,
+            step: side_by_side(&[&phi, &g0, &g1, &gb]),
+            check: side_by_side(&[&check_state, &check_p0, &check_p1, &check_b]),
             row_sums,
             friction,
-            select_t: select.transpose(),
+            select: select_taps,
             const_force,
-            b: DVector::zeros(q),
+            input: DVector::zeros(3 * n + 2 * ne + q),
             checks: DVector::zeros(r * L),
-            x: DVector::zeros(3 * n),
             next: DVector::zeros(3 * n),
-            p0: DVector::zeros(ne),
-            p1: DVector::zeros(ne),
             signs: vec![0.0; r],
         }))
     }
@@ -1372,77 +1368,57 @@ impl SlipSampleMap {
     /// does not, or when a friction starts at `δ = 0`.
     fn try_sample(&mut self, s: &mut State, pa: &[f64], pb: &[f64]) -> bool {
         let n = s.u.len();
-        self.x.rows_mut(0, n).copy_from(&s.u);
-        self.x.rows_mut(n, n).copy_from(&s.v);
-        self.x.rows_mut(2 * n, n).copy_from(&s.a);
-        let mut b_max = 0.0f64;
-        for (ci, f) in self.const_force.iter().enumerate() {
-            self.b[ci] = *f;
-        }
+        let ne = (self.input.len() - 3 * n - self.const_force.len()) / 2;
+        let input = self.input.as_mut_slice();
+        let (x, rest) = input.split_at_mut(3 * n);
+        let (p0, rest) = rest.split_at_mut(ne);
+        let (p1, b) = rest.split_at_mut(ne);
+        x[..n].copy_from_slice(s.u.as_slice());
+        x[n..2 * n].copy_from_slice(s.v.as_slice());
+        x[2 * n..].copy_from_slice(s.a.as_slice());
+        b.copy_from_slice(self.const_force.as_slice());
         for (i, &(ci, _, level)) in self.friction.iter().enumerate() {
-            let now: f64 = self
-                .select_t
-                .column(i)
-                .as_slice()
+            // `-0.0 + …` as the dense row's `Iterator::sum` started.
+            let now = self.select[i]
                 .iter()
-                .zip(self.x.as_slice())
-                .map(|(a, b)| a * b)
-                .sum();
+                .fold(-0.0, |acc, &(j, coef)| acc + coef * x[j]);
             if now == 0.0 || !now.is_finite() {
                 return false;
             }
             self.signs[i] = now.signum();
-            self.b[ci] += self.signs[i] * level;
+            b[ci] += self.signs[i] * level;
         }
-        for v in self.b.iter() {
-            b_max = b_max.max(v.abs());
+        let b_max = b.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        for j in 0..ne {
+            p0[j] = pa.get(j).copied().unwrap_or(0.0);
+            p1[j] = pb.get(j).copied().unwrap_or(0.0);
         }
-        for j in 0..self.p0.len() {
-            self.p0[j] = pa.get(j).copied().unwrap_or(0.0);
-            self.p1[j] = pb.get(j).copied().unwrap_or(0.0);
-        }
+        let norms = [amax(x), amax(p0), amax(p1), b_max];
         crate::dense::gemv(
             &mut self.checks,
-            &self.check_state,
-            &self.x,
+            &self.check,
+            &self.input,
             crate::dense::Op::Set,
         );
-        crate::dense::gemv(
-            &mut self.checks,
-            &self.check_p0,
-            &self.p0,
-            crate::dense::Op::Add,
-        );
-        crate::dense::gemv(
-            &mut self.checks,
-            &self.check_p1,
-            &self.p1,
-            crate::dense::Op::Add,
-        );
-        crate::dense::gemv(
-            &mut self.checks,
-            &self.check_b,
-            &self.b,
-            crate::dense::Op::Add,
-        );
-        let norms = [amax(&self.x), amax(&self.p0), amax(&self.p1), b_max];
         let scale_of =
             |sums: &[f64; 4]| -> f64 { sums.iter().zip(&norms).map(|(a, b)| a * b).sum() };
         // The round-off scale of the worst row bounds every row's: most rows clear it.
         let bound = SLIP_TEST_MARGIN * scale_of(&self.largest_row_sums);
-        let r = self.friction.len();
-        for (row, (delta, sums)) in self.checks.iter().zip(&self.row_sums).enumerate() {
-            let margin = self.signs[row % r] * delta;
+        let signs = self.signs.iter().cycle();
+        for ((delta, sums), sign) in self.checks.iter().zip(&self.row_sums).zip(signs) {
+            let margin = sign * delta;
             // Written so that a NaN fails the test too.
             let clear = margin > bound || margin > SLIP_TEST_MARGIN * scale_of(sums);
             if !clear {
                 return false;
             }
         }
-        crate::dense::gemv(&mut self.next, &self.phi, &self.x, crate::dense::Op::Set);
-        crate::dense::gemv(&mut self.next, &self.g0, &self.p0, crate::dense::Op::Add);
-        crate::dense::gemv(&mut self.next, &self.g1, &self.p1, crate::dense::Op::Add);
-        crate::dense::gemv(&mut self.next, &self.gb, &self.b, crate::dense::Op::Add);
+        crate::dense::gemv(
+            &mut self.next,
+            &self.step,
+            &self.input,
+            crate::dense::Op::Set,
+        );
         s.u.copy_from(&self.next.rows(0, n));
         s.v.copy_from(&self.next.rows(n, n));
         s.a.copy_from(&self.next.rows(2 * n, n));
@@ -1461,8 +1437,8 @@ impl SlipSampleMap {
 
 /// The largest magnitude of `v`'s entries (nalgebra's `amax` as a plain loop: its generic
 /// fold was a tenth of the slip test's time).
-fn amax(v: &DVector<f64>) -> f64 {
-    v.as_slice().iter().fold(0.0f64, |a, b| a.max(b.abs()))
+fn amax(v: &[f64]) -> f64 {
+    v.iter().fold(0.0f64, |a, b| a.max(b.abs()))
 }
 
 /// `Tᴸ` by repeated squaring (the sample map of `L` equal sub-steps).
@@ -1541,30 +1517,25 @@ fn newmark_substep_map(
 struct ComposedSubsteps {
     substeps: usize,
     q: usize,
-    /// `Lc₃ᵀ Tʲ`, j = 1…L, stacked (`3q` rows per sub-step: δ₀, δ̇₀, δ̈₀ of each connection).
-    free_state: DMatrix<f64>,
-    /// The excitation's part of the same, for the sample's start `p_{i−1}` and end `p_i`
-    /// (linearly interpolated over the sub-steps).
-    free_p0: DMatrix<f64>,
-    free_p1: DMatrix<f64>,
+    /// `Lc₃ᵀ Tʲ`, j = 1…L, stacked (`3q` rows per sub-step: δ₀, δ̇₀, δ̈₀ of each
+    /// connection), side by side with the excitation's part of the same for the sample's
+    /// start `p_{i−1}` and end `p_i` (linearly interpolated over the sub-steps): a map of
+    /// the first `3n + 2 ne` entries of [`Self::input`].
+    free_map: DMatrix<f64>,
     /// `Lc₃ᵀ Tᵏ G_f`, k = 1…L−1: entry `(c, m)` of each as one vector over k
     /// (`impulse_by_lag[c q + m][k − 1]`), so the force history is a contiguous dot product.
     impulse_by_lag: Vec<Vec<f64>>,
-    /// `T^L`, and the excitation's part of the end state.
-    phi: DMatrix<f64>,
-    g0: DMatrix<f64>,
-    g1: DMatrix<f64>,
-    /// `T^{L−j} G_f`, j = 1…L, side by side (`3n × qL`).
-    force_to_end: DMatrix<f64>,
-    /// Work: the free predictions, the forces of the sample's sub-steps, state vectors.
+    /// The end state from [`Self::input`]: `T^L`, the excitation's part and
+    /// `T^{L−j} G_f`, j = 1…L (`3n × qL`), side by side.
+    end_map: DMatrix<f64>,
+    /// The inputs side by side: the start state `x`, `p_{i−1}`, `p_i` and the forces of the
+    /// sample's sub-steps (`q` per sub-step), `3n + 2 ne + qL`.
+    input: DVector<f64>,
+    /// Work: the free predictions.
     free: DVector<f64>,
-    forces: DVector<f64>,
     /// The sample's forces per connection, latest sub-step first (`[m][L − 1 − j]`).
     forces_reversed: Vec<Vec<f64>>,
-    x: DVector<f64>,
     next: DVector<f64>,
-    p0: DVector<f64>,
-    p1: DVector<f64>,
 }
 
 impl ComposedSubsteps {
@@ -1627,24 +1598,17 @@ impl ComposedSubsteps {
             }
         }
         let phi = matrix_power(T, L);
+        use crate::dense::side_by_side;
         Self {
             substeps: L,
             q,
-            free_state,
-            free_p0,
-            free_p1,
+            free_map: side_by_side(&[&free_state, &free_p0, &free_p1]),
             impulse_by_lag,
-            phi,
-            g0,
-            g1,
-            force_to_end,
+            end_map: side_by_side(&[&phi, &g0, &g1, &force_to_end]),
+            input: DVector::zeros(3 * n + 2 * ne + q * L),
             free: DVector::zeros(3 * q * L),
-            forces: DVector::zeros(q * L),
             forces_reversed: vec![vec![0.0; L]; q],
-            x: DVector::zeros(3 * n),
             next: DVector::zeros(3 * n),
-            p0: DVector::zeros(ne),
-            p1: DVector::zeros(ne),
         }
     }
 }

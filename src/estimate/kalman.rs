@@ -87,6 +87,8 @@ pub struct KalmanEstimator {
     diag: EstimatorDiagnostics,
     /// `H` (for the initial-state fit; `Ψ` is the smoother's).
     h: DMatrix<f64>,
+    /// Each channel's index in `z` (`H`'s one non-zero per row).
+    channel_index: Vec<usize>,
     /// The state the passes start from, added to rest (`3n`; a record in motion).
     initial_offset: Option<DVector<f64>>,
 }
@@ -353,6 +355,7 @@ impl KalmanEstimator {
         let h = H.clone();
         Ok(Self {
             h,
+            channel_index: (0..m).map(|k| stations.state_index(k, n)).collect(),
             initial_offset: None,
             stepper,
             law: inp.law,
@@ -511,8 +514,8 @@ impl ResidualEstimator for KalmanEstimator {
         self.zp.rows_mut(n, n).copy_from(&self.pred.v);
         self.zp.rows_mut(2 * n, n).copy_from(&self.pred.a);
         self.zp.rows_mut(3 * n, self.q).copy_from(&self.r);
-        for (k, &(dof, qty)) in self.stations.channels.iter().enumerate() {
-            self.innov[k] = measured[k] - self.pred.channel(dof, qty);
+        for (k, &j) in self.channel_index.iter().enumerate() {
+            self.innov[k] = measured[k] - self.zp[j];
         }
         // Likelihood bookkeeping.
         self.dz
@@ -523,7 +526,7 @@ impl ResidualEstimator for KalmanEstimator {
         // Update.
         self.z.copy_from(&self.zp);
         crate::dense::gemv(&mut self.z, &self.gain, &self.innov, crate::dense::Op::Add);
-        if self.z.iter().any(|x| !x.is_finite()) {
+        if !crate::dense::all_finite(self.z.as_slice()) {
             return Err(EstimateError::Diverged { sample });
         }
         self.state.u.copy_from(&self.z.rows(0, n));
@@ -552,12 +555,15 @@ impl ResidualEstimator for KalmanEstimator {
         if self.smoother.is_some() {
             return Ok(false);
         }
-        // Filter-only output: lend z and g_{i−1} (kept in `lin`) to `emit` without copying.
-        let z = std::mem::replace(&mut self.z, DVector::zeros(0));
-        let g_used = std::mem::replace(&mut self.g_used, DVector::zeros(0));
-        self.emit(sample, z.as_slice(), g_used.as_slice(), out);
-        self.z = z;
-        self.g_used = g_used;
+        // Filter-only output: the state is z and `out` has its deformations already.
+        out.sample = sample;
+        self.law
+            .linear_force(&out.delta, &out.delta_v, &out.delta_a, &mut self.lin);
+        let residual = self.z.rows(3 * n, self.q);
+        for c in 0..self.q {
+            out.residual[c] = residual[c];
+            out.force[c] = self.lin[c] + self.g_used[c] + residual[c];
+        }
         Ok(true)
     }
 

@@ -808,9 +808,15 @@ fn normal(j: &Jac) -> (DMatrix<f64>, DVector<f64>) {
 /// `JᵀJ` and `Jᵀr` of columns `cols` and innovations `r`.
 fn normal_of(cols: &[Vec<f64>], r: &[f64]) -> (DMatrix<f64>, DVector<f64>) {
     let p = cols.len();
-    let F = DMatrix::from_fn(p, p, |a, b| {
-        cols[a].iter().zip(&cols[b]).map(|(x, y)| x * y).sum()
-    });
+    // Each product once: `cols[b]·cols[a]` is `cols[a]·cols[b]` bit for bit.
+    let mut F = DMatrix::zeros(p, p);
+    for a in 0..p {
+        for b in a..p {
+            let v: f64 = cols[a].iter().zip(&cols[b]).map(|(x, y)| x * y).sum();
+            F[(a, b)] = v;
+            F[(b, a)] = v;
+        }
+    }
     let g = DVector::from_fn(p, |a, _| cols[a].iter().zip(r).map(|(x, y)| x * y).sum());
     (F, g)
 }

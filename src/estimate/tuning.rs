@@ -129,6 +129,35 @@ pub fn maximise_log_parallel(
 /// shipped friction replay: BENCHMARKS.md, eighteenth session.
 pub const LOG_TOLERANCE: f64 = 0.01;
 
+/// A whole-record likelihood's values remembered by the exact bits of its arguments.
+///
+/// Why: the tunings come back to points they have already run — Brent's step can land
+/// exactly on a grid point, and a search of one tuning variable can start its grid on the
+/// value another search has just run — each a whole-record filter run (measured on the
+/// benchmark record, BENCHMARKS.md twenty-ninth session: 5 of 99). The same arguments give
+/// the same bits, so a remembered value changes nothing but the time. The caller keys it by
+/// every argument that varies while the memo lives (the data and the model it borrows for
+/// that time do not).
+#[derive(Debug, Default)]
+pub struct Remembered {
+    values: std::sync::Mutex<std::collections::HashMap<Vec<u64>, f64>>,
+}
+
+impl Remembered {
+    /// The value at `key`: remembered, or `run()` (then remembered).
+    pub fn value(&self, key: &[f64], run: impl FnOnce() -> f64) -> f64 {
+        let key: Vec<u64> = key.iter().map(|x| x.to_bits()).collect();
+        if let Some(v) = self.values.lock().ok().and_then(|m| m.get(&key).copied()) {
+            return v;
+        }
+        let v = run();
+        if let Ok(mut m) = self.values.lock() {
+            m.insert(key, v);
+        }
+        v
+    }
+}
+
 /// [`maximise_log`] with `eval` evaluating a batch of points `x` (not log).
 fn maximise_log_batched(
     lo: f64,
@@ -144,6 +173,12 @@ fn maximise_log_batched(
     let ts: Vec<f64> = (0..grid).map(|i| a + step * i as f64).collect();
     let xs: Vec<f64> = ts.iter().map(|t| t.exp()).collect();
     let values: Vec<f64> = eval(&xs).into_iter().map(finite).collect();
+    // A Brent step that lands exactly on a grid point reads its value (see [`Remembered`]).
+    let on_grid = |x: f64| {
+        xs.iter()
+            .position(|g| g.to_bits() == x.to_bits())
+            .map(|i| values[i])
+    };
     let mut best = 0;
     for (i, v) in values.iter().enumerate() {
         if *v > values[best] {
@@ -161,7 +196,10 @@ fn maximise_log_batched(
             values.get(best + 1).map(|v| (ts[best + 1], -v)),
         ],
         refine,
-        &mut |t| -finite(eval(&[t.exp()])[0]),
+        &mut |t| {
+            let x = t.exp();
+            -on_grid(x).unwrap_or_else(|| finite(eval(&[x])[0]))
+        },
     );
     (peak.0.exp(), -peak.1, grid + count)
 }
