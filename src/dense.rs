@@ -95,16 +95,17 @@ pub fn side_by_side(blocks: &[&DMatrix<f64>]) -> DMatrix<f64> {
     out
 }
 
-/// The AVX kernel of [`gemv`]: rows in blocks of up to 32 (eight registers of four), the
-/// rows left over in one last block (up to seven registers and three single rows), every
-/// element summed over the columns in order.
+/// The AVX kernel of [`gemv`]: rows in blocks of 32 (eight registers of four) while more
+/// than 35 are left, the rest in one last block (up to eight registers and three single
+/// rows), every element summed over the columns in order.
 ///
 /// Why blocks this wide: an element's sum is a chain of dependent adds (four cycles each),
 /// so a block's columns go no faster than one per add latency whatever its width; eight
 /// independent registers fill both add ports. With four (sixteen rows, as before) the
-/// paper model's `33 × 33` product took two such passes and a third for its last row, which
-/// now rides along in the same pass. Same operations per element, in the same order: the
-/// bits do not change.
+/// paper model's `33 × 33` product took two such passes and a third for its last row; until
+/// the twenty-ninth session that row still took a second pass of its own (a scalar chain of
+/// one add latency per column), now it rides along in the first. Same operations per
+/// element, in the same order: the bits do not change.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx")]
 unsafe fn gemv_avx(y: &mut [f64], a: &[f64], rows: usize, cols: usize, x: &[f64], op: Op) {
@@ -121,7 +122,10 @@ unsafe fn gemv_avx(y: &mut [f64], a: &[f64], rows: usize, cols: usize, x: &[f64]
     // SAFETY (every block): rows `i .. i + 4V + S` are `≤ rows` and columns `< cols`, so every
     // offset `j·rows + i + k` is inside `a`, `i + k` inside `y` and `j` inside `x`.
     unsafe {
-        while i + 32 <= rows {
+        // Whole blocks of 32 while more than 35 rows are left; the last pass takes the rest
+        // (up to 35: eight registers and three single rows — the paper model's 33 and 34
+        // rows in one pass, not a second pass for their last rows' scalar chains).
+        while rows - i > 35 {
             gemv_block::<8, 0>(yp, ap, xp, rows, cols, i, op);
             i += 32;
         }
@@ -135,11 +139,11 @@ unsafe fn gemv_avx(y: &mut [f64], a: &[f64], rows: usize, cols: usize, x: &[f64]
                         ($v, 2) => gemv_block::<$v, 2>(yp, ap, xp, rows, cols, i, op),
                         ($v, 3) => gemv_block::<$v, 3>(yp, ap, xp, rows, cols, i, op),
                     )*
-                    _ => unreachable!("fewer than 32 rows are left"),
+                    _ => unreachable!("at most 35 rows are left"),
                 }
             };
         }
-        dispatch!(0, 1, 2, 3, 4, 5, 6, 7);
+        dispatch!(0, 1, 2, 3, 4, 5, 6, 7, 8);
     }
 }
 
