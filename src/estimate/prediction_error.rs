@@ -44,9 +44,8 @@ pub struct Predictor {
     pub whiten: DMatrix<f64>,
     /// Process-noise force std per sample at every connection, N.
     pub force_std: f64,
-    /// Spectral radius of the linear part's closed loop `(I − K H) Φ` (< 1: the observer
-    /// forgets an error; its memory is about `1/(1 − ρ)` samples).
-    pub spectral_radius: f64,
+    /// The linear part's closed loop `(I − K H) Φ`, for [`Predictor::spectral_radius`].
+    closed: DMatrix<f64>,
     /// The state `(u; u̇; ü)` the predictions start from, as offsets from rest (a record
     /// that starts in motion; `IdentifyOptions::initial_state`). `None`: at rest.
     pub initial: Option<Vec<f64>>,
@@ -63,6 +62,14 @@ pub struct Predictor {
 }
 
 impl Predictor {
+    /// Spectral radius of the linear part's closed loop `(I − K H) Φ` (< 1: the observer
+    /// forgets an error; its memory is about `1/(1 − ρ)` samples). Computed when asked (24
+    /// squarings of the `3n × 3n` loop, a third of building the observer): only the report
+    /// of the answer's observer states it, not the likelihood tunings' dozens of observers.
+    pub fn spectral_radius(&self) -> f64 {
+        spectral_radius_by_powers(&self.closed)
+    }
+
     /// From now on, [`innovations`] over records of `samples` samples returns the
     /// innovations *concentrated over the initial state*: `e − W H Ψᵏ δ̂(e)`, the
     /// residuals with the start state refitted by least squares (exact for the linear
@@ -345,7 +352,6 @@ pub fn predictor(
     let linv = chol.l().try_inverse().ok_or(SimulateError::Singular)?;
     let gain = &P * H.transpose() * &sinv;
     let closed = (DMatrix::identity(3 * n, 3 * n) - &gain * &H) * &phi;
-    let spectral_radius = spectral_radius_by_powers(&closed);
     if !gain.iter().all(|x| x.is_finite()) {
         return Err(SimulateError::Singular);
     }
@@ -360,7 +366,7 @@ pub fn predictor(
         gain,
         whiten: linv,
         force_std,
-        spectral_radius,
+        closed,
     })
 }
 
@@ -1605,7 +1611,7 @@ pub fn refine(
         initial_state,
         report: PredictionErrorReport {
             force_std,
-            spectral_radius: pred.spectral_radius,
+            spectral_radius: pred.spectral_radius(),
             substeps,
             iterations,
             cost_start: cost_start.unwrap_or(f64::NAN),
