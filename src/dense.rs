@@ -78,6 +78,53 @@ pub fn all_finite(v: &[f64]) -> bool {
     }) == 0
 }
 
+/// The largest magnitude of the entries, nalgebra's `amax` to the bit (0 for none), in four
+/// independent running maxima: its one chain of compares waits on the last for every entry
+/// (the Riccati doubling's convergence test and the slip test's scales). nalgebra's fold
+/// (`if a > |e| { a } else { |e| }`) lets a NaN entry replace the running value and the next
+/// entry replace a NaN, so with a NaN present the answer depends on the order: then the fold
+/// is run as nalgebra runs it.
+pub fn amax(v: &[f64]) -> f64 {
+    amax_by(v.len(), |k| v[k].abs())
+}
+
+/// The largest magnitude of `a − b`'s entries (equal lengths), bit for bit
+/// `(a − b).amax()` without the difference's matrix.
+pub fn amax_of_difference(a: &[f64], b: &[f64]) -> f64 {
+    assert_eq!(a.len(), b.len(), "amax_of_difference: equal lengths");
+    amax_by(a.len(), |k| (a[k] - b[k]).abs())
+}
+
+/// [`amax`] of the magnitudes `abs(k)`, `k < len`.
+#[inline]
+fn amax_by(len: usize, abs: impl Fn(usize) -> f64) -> f64 {
+    if len == 0 {
+        return 0.0;
+    }
+    let mut lanes = [0.0f64; 4];
+    let mut nan = false;
+    let full = len / 4 * 4;
+    for k in (0..full).step_by(4) {
+        for (l, m) in lanes.iter_mut().enumerate() {
+            let e = abs(k + l);
+            nan |= e.is_nan();
+            *m = m.max(e);
+        }
+    }
+    for k in full..len {
+        let e = abs(k);
+        nan |= e.is_nan();
+        lanes[0] = lanes[0].max(e);
+    }
+    if nan {
+        return (1..len).fold(abs(0), |a, k| {
+            let e = abs(k);
+            if a > e { a } else { e }
+        });
+    }
+    lanes.iter().fold(0.0, |a, b| a.max(*b))
+}
+
 /// The blocks side by side, `[A₀ A₁ …]` (equal rows). Why: `[A₀ A₁] (x₀; x₁)` through
 /// [`gemv`] is, element for element, `A₀ x₀` followed by `+ A₁ x₁` — the same rounded
 /// products added in the same order as two calls (`Op::Set` then `Op::Add`), so a map of
@@ -500,6 +547,78 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A product of blocks side by side is, to the bit, the first block's product followed
+    /// by the others' accumulated (`Op::Set` then `Op::Add`): the per-sample maps' one call
+    /// changes no answer.
+    #[test]
+    fn a_product_side_by_side_equals_the_products_in_turn_to_the_bit() {
+        let mut rng = ChaCha8Rng::seed_from_u64(13);
+        let mut value = || {
+            let e: i32 = rng.random_range(-12..12);
+            rng.random_range(-1.0..1.0) * 10f64.powi(e)
+        };
+        for rows in [1, 8, 33, 34, 35, 36, 41] {
+            let widths = [33, 1, 1, 2];
+            let blocks: Vec<DMatrix<f64>> = widths
+                .iter()
+                .map(|&c| DMatrix::from_fn(rows, c, |_, _| value()))
+                .collect();
+            let inputs: Vec<DVector<f64>> = widths
+                .iter()
+                .map(|&c| DVector::from_fn(c, |_, _| value()))
+                .collect();
+            let mut want = DVector::zeros(rows);
+            for (k, (b, x)) in blocks.iter().zip(&inputs).enumerate() {
+                gemv(&mut want, b, x, if k == 0 { Op::Set } else { Op::Add });
+            }
+            let joined = side_by_side(&blocks.iter().collect::<Vec<_>>());
+            let x = DVector::from_iterator(
+                widths.iter().sum(),
+                inputs.iter().flat_map(|v| v.iter().copied()),
+            );
+            let mut got = DVector::zeros(rows);
+            gemv(&mut got, &joined, &x, Op::Set);
+            let bits = |v: &DVector<f64>| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&got), bits(&want), "{rows} rows");
+        }
+    }
+
+    /// [`amax`] and [`amax_of_difference`] are nalgebra's `amax` to the bit, NaN entries
+    /// (skipped; NaN only when all are), signed zeros and empty slices included; and
+    /// [`all_finite`] tells an infinity or a NaN anywhere.
+    #[test]
+    fn amax_and_finiteness_equal_the_plain_definitions() {
+        let mut rng = ChaCha8Rng::seed_from_u64(14);
+        for len in 0..=13 {
+            for _ in 0..50 {
+                let a: Vec<f64> = (0..len)
+                    .map(|_| match rng.random_range(0..8) {
+                        0 => f64::NAN,
+                        1 => -0.0,
+                        _ => rng.random_range(-1e3..1e3),
+                    })
+                    .collect();
+                let b: Vec<f64> = (0..len).map(|_| rng.random_range(-1e3..1e3)).collect();
+                let (ma, mb) = (
+                    DMatrix::from_column_slice(len, 1, &a),
+                    DMatrix::from_column_slice(len, 1, &b),
+                );
+                assert_eq!(amax(&a).to_bits(), ma.amax().to_bits(), "{a:?}");
+                assert_eq!(
+                    amax_of_difference(&a, &b).to_bits(),
+                    (&ma - &mb).amax().to_bits(),
+                    "{a:?} − {b:?}"
+                );
+                let finite = a.iter().all(|x| x.is_finite());
+                assert_eq!(all_finite(&a), finite);
+            }
+        }
+        assert!(amax(&[f64::NAN, f64::NAN]).is_nan());
+        assert!(!all_finite(&[1.0, f64::INFINITY]));
+        assert!(!all_finite(&[f64::NEG_INFINITY]));
+        assert!(all_finite(&[f64::MAX, -f64::MAX, f64::MIN_POSITIVE, 0.0]));
     }
 
     /// [`LuSolver::solve`] (and its portable kernel) gives the bits of nalgebra's `lu.solve` for every size up to 40

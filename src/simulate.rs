@@ -1367,6 +1367,7 @@ impl SlipSampleMap {
     /// `δ` (or `δ̇`) points through all the sub-steps; `false` (and `s` untouched) when it
     /// does not, or when a friction starts at `δ = 0`.
     fn try_sample(&mut self, s: &mut State, pa: &[f64], pb: &[f64]) -> bool {
+        use crate::dense::amax;
         let n = s.u.len();
         let ne = (self.input.len() - 3 * n - self.const_force.len()) / 2;
         let input = self.input.as_mut_slice();
@@ -1433,25 +1434,6 @@ impl SlipSampleMap {
             .zip(&self.signs)
             .map(|(&(ci, ..), &s)| (ci, s))
     }
-}
-
-/// The largest magnitude of `v`'s entries (nalgebra's `amax` as a plain loop: its generic
-/// fold was a tenth of the slip test's time), in four independent running maxima: one chain
-/// of `max` waits on the last for every entry. The same value in any order (`max` is exact
-/// and skips a NaN wherever it comes).
-fn amax(v: &[f64]) -> f64 {
-    let mut lanes = [0.0f64; 4];
-    let mut chunks = v.chunks_exact(4);
-    for c in &mut chunks {
-        for (m, x) in lanes.iter_mut().zip(c) {
-            *m = m.max(x.abs());
-        }
-    }
-    let rest = chunks
-        .remainder()
-        .iter()
-        .fold(0.0f64, |a, b| a.max(b.abs()));
-    lanes.iter().fold(rest, |a, b| a.max(*b))
 }
 
 /// `Tᴸ` by repeated squaring (the sample map of `L` equal sub-steps).

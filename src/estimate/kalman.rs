@@ -1036,8 +1036,8 @@ fn filter_dare_doubling(
         let akt = crate::dense::transposed(&Ak);
         let g_next = &Gk + &Ak * wg * &akt;
         let h_next = &Hk + &akt * &Hk * &wa;
-        let change = (&h_next - &Hk).amax();
-        let scale = h_next.amax().max(f64::MIN_POSITIVE);
+        let change = crate::dense::amax_of_difference(h_next.as_slice(), Hk.as_slice());
+        let scale = crate::dense::amax(h_next.as_slice()).max(f64::MIN_POSITIVE);
         if change >= last_change
             && last_change <= DARE_ROUND_OFF * scale
             && peak_change >= DARE_DESCENT * last_change
