@@ -125,6 +125,32 @@ fn amax_by(len: usize, abs: impl Fn(usize) -> f64) -> f64 {
     lanes.iter().fold(0.0, |a, b| a.max(*b))
 }
 
+/// `a · x` (equal lengths), bit for bit nalgebra's `dot` of two dynamic vectors (eight
+/// running sums over blocks of eight, combined as `(s₀ + s₄) + (s₁ + s₅) + …`, then the
+/// remaining products in order), and so `y.gemv_tr(1.0, A, x, 0.0)` column by column,
+/// without its views and checks (the Kalman step's connection deformations).
+pub fn dot(a: &[f64], x: &[f64]) -> f64 {
+    assert_eq!(a.len(), x.len(), "dot: equal lengths");
+    let n = a.len();
+    let mut acc = [0.0f64; 8];
+    let mut i = 0;
+    while n - i >= 8 {
+        for (k, s) in acc.iter_mut().enumerate() {
+            *s += a[i + k] * x[i + k];
+        }
+        i += 8;
+    }
+    let mut res = 0.0;
+    res += acc[0] + acc[4];
+    res += acc[1] + acc[5];
+    res += acc[2] + acc[6];
+    res += acc[3] + acc[7];
+    for k in i..n {
+        res += a[k] * x[k];
+    }
+    res
+}
+
 /// The blocks side by side, `[A₀ A₁ …]` (equal rows). Why: `[A₀ A₁] (x₀; x₁)` through
 /// [`gemv`] is, element for element, `A₀ x₀` followed by `+ A₁ x₁` — the same rounded
 /// products added in the same order as two calls (`Op::Set` then `Op::Add`), so a map of
@@ -582,6 +608,30 @@ mod tests {
             gemv(&mut got, &joined, &x, Op::Set);
             let bits = |v: &DVector<f64>| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&got), bits(&want), "{rows} rows");
+        }
+    }
+
+    /// [`dot`] is nalgebra's `dot` (and `gemv_tr`'s column) to the bit for every length up to
+    /// 40, signed zeros included.
+    #[test]
+    fn dot_equals_nalgebra_to_the_bit() {
+        let mut rng = ChaCha8Rng::seed_from_u64(15);
+        for len in 0..=40 {
+            for _ in 0..20 {
+                let mut value = || match rng.random_range(0..6) {
+                    0 => -0.0,
+                    1 => 0.0,
+                    _ => rng.random_range(-1.0..1.0) * 10f64.powi(rng.random_range(-15..15)),
+                };
+                let a: Vec<f64> = (0..len).map(|_| value()).collect();
+                let x: Vec<f64> = (0..len).map(|_| value()).collect();
+                let (va, vx) = (DVector::from_vec(a.clone()), DVector::from_vec(x.clone()));
+                assert_eq!(dot(&a, &x).to_bits(), va.dot(&vx).to_bits(), "{len}");
+                let m = DMatrix::from_column_slice(len, 1, &a);
+                let mut y = DVector::zeros(1);
+                y.gemv_tr(1.0, &m, &vx, 0.0);
+                assert_eq!(dot(&a, &x).to_bits(), y[0].to_bits(), "{len}");
+            }
         }
     }
 

@@ -147,12 +147,14 @@ impl Stepper {
             for (j, pt) in self.p_t.iter_mut().enumerate() {
                 *pt = p_prev[j] + t * (p_next[j] - p_prev[j]);
             }
-            // Predictors ũ = u + h v + (½−β)h² a, ṽ = v + (1−γ)h a.
-            self.u_t.copy_from(&state.u);
-            self.u_t.axpy(h, &state.v, 1.0);
-            self.u_t.axpy((0.5 - beta) * h * h, &state.a, 1.0);
-            self.v_t.copy_from(&state.v);
-            self.v_t.axpy((1.0 - gamma) * h, &state.a, 1.0);
+            // Predictors ũ = u + h v + (½−β)h² a, ṽ = v + (1−γ)h a — as nalgebra's
+            // `axpy` (`y ← a x + y`) computed them, in plain loops.
+            let (ca, cv) = ((0.5 - beta) * h * h, (1.0 - gamma) * h);
+            for k in 0..self.n {
+                let (u, v, a) = (state.u[k], state.v[k], state.a[k]);
+                self.u_t[k] = ca * a + (h * v + u);
+                self.v_t[k] = cv * a + v;
+            }
             // rhs = Lp p − Lc f − C ṽ − K ũ
             use crate::dense::{Op, gemv};
             gemv(&mut self.rhs, &self.Lp, &self.p_t, Op::Set);
@@ -160,10 +162,12 @@ impl Stepper {
             gemv(&mut self.rhs, &self.C, &self.v_t, Op::Subtract);
             gemv(&mut self.rhs, &self.K, &self.u_t, Op::Subtract);
             gemv(&mut state.a, &self.meff_inv, &self.rhs, Op::Set);
-            state.u.copy_from(&self.u_t);
-            state.u.axpy(beta * h * h, &state.a, 1.0);
-            state.v.copy_from(&self.v_t);
-            state.v.axpy(gamma * h, &state.a, 1.0);
+            let (cu, cv) = (beta * h * h, gamma * h);
+            for k in 0..self.n {
+                let a = state.a[k];
+                state.u[k] = cu * a + self.u_t[k];
+                state.v[k] = cv * a + self.v_t[k];
+            }
         }
     }
 

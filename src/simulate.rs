@@ -887,9 +887,15 @@ pub fn each_prediction_with_observer(
         // 4e-5; the 50-seed sweeps (ACCURACY.md) went from 92 % coverage and 71.8 errors
         // worst to 99 % and 2.7 (friction, 8 sub-steps, 10 % noise), 98 %/25.7 to 99 %/4.9
         // (spring, 8 sub-steps, 1 %).
-        s.u += &dx.rows(0, n);
-        s.v += &dx.rows(n, n);
-        s.a += &dx.rows(2 * n, n);
+        let dx = dx.as_slice();
+        for (w, d) in [&mut s.u, &mut s.v, &mut s.a]
+            .into_iter()
+            .zip(dx.chunks_exact(n))
+        {
+            for (x, e) in w.iter_mut().zip(d) {
+                *x += e;
+            }
+        }
     };
     record(&s, &mut yi);
     correct(&mut s, &response[0], &yi);

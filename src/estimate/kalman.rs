@@ -837,9 +837,11 @@ fn connection_deformation(
     dv: &mut DVector<f64>,
     da: &mut DVector<f64>,
 ) {
-    d.gemv_tr(1.0, lc, &s.u, 0.0);
-    dv.gemv_tr(1.0, lc, &s.v, 0.0);
-    da.gemv_tr(1.0, lc, &s.a, 0.0);
+    for (out, w) in [(d, &s.u), (dv, &s.v), (da, &s.a)] {
+        for (c, o) in out.iter_mut().enumerate() {
+            *o = crate::dense::dot(lc.column(c).as_slice(), w.as_slice());
+        }
+    }
 }
 
 /// Solution of the Stein equation `X = C + Ψᵀ X Ψ` (spectral radius of Ψ < 1) by doubling.
