@@ -85,68 +85,83 @@ pub fn all_finite(v: &[f64]) -> bool {
 /// entry replace a NaN, so with a NaN present the answer depends on the order: then the fold
 /// is run as nalgebra runs it.
 pub fn amax(v: &[f64]) -> f64 {
-    amax_by(v.len(), |k| v[k].abs())
+    if v.is_empty() {
+        return 0.0;
+    }
+    let mut lanes = [0.0f64; 4];
+    let mut nan = false;
+    let mut chunks = v.chunks_exact(4);
+    for c in &mut chunks {
+        for (m, x) in lanes.iter_mut().zip(c) {
+            nan |= x.is_nan();
+            *m = m.max(x.abs());
+        }
+    }
+    for x in chunks.remainder() {
+        nan |= x.is_nan();
+        lanes[0] = lanes[0].max(x.abs());
+    }
+    if nan {
+        return nalgebra_amax(v.iter().map(|x| x.abs()));
+    }
+    lanes.iter().fold(0.0, |a, b| a.max(*b))
 }
 
 /// The largest magnitude of `a − b`'s entries (equal lengths), bit for bit
 /// `(a − b).amax()` without the difference's matrix.
 pub fn amax_of_difference(a: &[f64], b: &[f64]) -> f64 {
     assert_eq!(a.len(), b.len(), "amax_of_difference: equal lengths");
-    amax_by(a.len(), |k| (a[k] - b[k]).abs())
-}
-
-/// [`amax`] of the magnitudes `abs(k)`, `k < len`.
-#[inline]
-fn amax_by(len: usize, abs: impl Fn(usize) -> f64) -> f64 {
-    if len == 0 {
+    if a.is_empty() {
         return 0.0;
     }
     let mut lanes = [0.0f64; 4];
     let mut nan = false;
-    let full = len / 4 * 4;
-    for k in (0..full).step_by(4) {
-        for (l, m) in lanes.iter_mut().enumerate() {
-            let e = abs(k + l);
+    let (mut ca, mut cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    for (x, y) in (&mut ca).zip(&mut cb) {
+        for ((m, p), q) in lanes.iter_mut().zip(x).zip(y) {
+            let e = (p - q).abs();
             nan |= e.is_nan();
             *m = m.max(e);
         }
     }
-    for k in full..len {
-        let e = abs(k);
+    for (p, q) in ca.remainder().iter().zip(cb.remainder()) {
+        let e = (p - q).abs();
         nan |= e.is_nan();
         lanes[0] = lanes[0].max(e);
     }
     if nan {
-        return (1..len).fold(abs(0), |a, k| {
-            let e = abs(k);
-            if a > e { a } else { e }
-        });
+        return nalgebra_amax(a.iter().zip(b).map(|(p, q)| (p - q).abs()));
     }
-    lanes.iter().fold(0.0, |a, b| a.max(*b))
+    lanes.iter().fold(0.0, |m, l| m.max(*l))
+}
+
+/// nalgebra's `amax` fold over magnitudes, in order (non-empty): `if a > e { a } else { e }`.
+fn nalgebra_amax(mut magnitudes: impl Iterator<Item = f64>) -> f64 {
+    let first = magnitudes.next().unwrap_or(0.0);
+    magnitudes.fold(first, |a, e| if a > e { a } else { e })
 }
 
 /// `a · x` (equal lengths), bit for bit nalgebra's `dot` of two dynamic vectors (eight
 /// running sums over blocks of eight, combined as `(s₀ + s₄) + (s₁ + s₅) + …`, then the
 /// remaining products in order), and so `y.gemv_tr(1.0, A, x, 0.0)` column by column,
 /// without its views and checks (the Kalman step's connection deformations).
+#[inline]
 pub fn dot(a: &[f64], x: &[f64]) -> f64 {
     assert_eq!(a.len(), x.len(), "dot: equal lengths");
-    let n = a.len();
     let mut acc = [0.0f64; 8];
-    let mut i = 0;
-    while n - i >= 8 {
-        for (k, s) in acc.iter_mut().enumerate() {
-            *s += a[i + k] * x[i + k];
+    let (mut ca, mut cx) = (a.chunks_exact(8), x.chunks_exact(8));
+    for (p, q) in (&mut ca).zip(&mut cx) {
+        for ((s, y), z) in acc.iter_mut().zip(p).zip(q) {
+            *s += y * z;
         }
-        i += 8;
     }
     let mut res = 0.0;
     res += acc[0] + acc[4];
     res += acc[1] + acc[5];
     res += acc[2] + acc[6];
     res += acc[3] + acc[7];
-    for k in i..n {
-        res += a[k] * x[k];
+    for (y, z) in ca.remainder().iter().zip(cx.remainder()) {
+        res += y * z;
     }
     res
 }
