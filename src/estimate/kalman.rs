@@ -55,8 +55,8 @@ pub struct KalmanEstimator {
     g: DVector<f64>,
     /// Explicit force used over the last interval (g_{i−1}).
     g_used: DVector<f64>,
-    /// Γ_f, 3n × q.
-    gamma: DMatrix<f64>,
+    /// Γ_f's displacement, velocity and acceleration rows (`n × q` each, contiguous).
+    gamma_blocks: [DMatrix<f64>; 3],
     /// Evaluate the non-linear connection force at the predicted state (see `step`).
     semi_implicit: bool,
     dd: DVector<f64>,
@@ -371,7 +371,7 @@ impl KalmanEstimator {
             p_prev: vec![0.0; model.Lp.ncols()],
             g: DVector::zeros(q),
             g_used: DVector::zeros(q),
-            gamma: gamma.clone(),
+            gamma_blocks: [0, n, 2 * n].map(|r| gamma.rows(r, n).into_owned()),
             semi_implicit: opts.semi_implicit,
             dd: DVector::zeros(q),
             ddv: DVector::zeros(q),
@@ -504,9 +504,10 @@ impl ResidualEstimator for KalmanEstimator {
             self.lin -= &self.g;
             if self.lin.iter().any(|x| *x != 0.0) {
                 let (u, v, a) = (&mut self.pred.u, &mut self.pred.v, &mut self.pred.a);
-                u.gemv(1.0, &self.gamma.rows(0, n), &self.lin, 1.0);
-                v.gemv(1.0, &self.gamma.rows(n, n), &self.lin, 1.0);
-                a.gemv(1.0, &self.gamma.rows(2 * n, n), &self.lin, 1.0);
+                use crate::dense::{Op, gemv};
+                for (w, block) in [u, v, a].into_iter().zip(&self.gamma_blocks) {
+                    gemv(w, block, &self.lin, Op::Add);
+                }
                 self.g += &self.lin;
             }
         }
@@ -518,10 +519,15 @@ impl ResidualEstimator for KalmanEstimator {
             self.innov[k] = measured[k] - self.zp[j];
         }
         // Likelihood bookkeeping.
-        self.dz
-            .rows_mut(0, self.stations.m())
-            .gemv(1.0, &self.innov_inv, &self.innov, 0.0);
-        self.nis_sum += self.innov.dot(&self.dz.rows(0, self.stations.m()));
+        let m = self.stations.m();
+        let whitened = &mut self.dz.as_mut_slice()[..m];
+        crate::dense::gemv_slices(
+            whitened,
+            &self.innov_inv,
+            self.innov.as_slice(),
+            crate::dense::Op::Set,
+        );
+        self.nis_sum += crate::dense::dot(self.innov.as_slice(), whitened);
         self.nis_count += 1;
         // Update.
         self.z.copy_from(&self.zp);
