@@ -865,16 +865,30 @@ pub fn each_prediction_with_observer(
         }
     }
     let mut yi = vec![0.0; m];
+    // Each channel as (0 = u, 1 = u̇, 2 = ü; its DOF).
+    let channels: Vec<(usize, usize)> = model
+        .stations
+        .iter()
+        .map(|st| {
+            let kind = match st.quantity {
+                crate::setup::Quantity::Displacement => 0,
+                crate::setup::Quantity::Velocity => 1,
+                crate::setup::Quantity::Acceleration => 2,
+            };
+            (kind, st.dof)
+        })
+        .collect();
     let record = |s: &State, y: &mut [f64]| {
-        for (v, st) in y.iter_mut().zip(&model.stations) {
-            *v = s.channel(st.dof, st.quantity);
+        let state = [s.u.as_slice(), s.v.as_slice(), s.a.as_slice()];
+        for (v, &(kind, dof)) in y.iter_mut().zip(&channels) {
+            *v = state[kind][dof];
         }
     };
     let mut innov = DVector::zeros(m);
     let mut dx = DVector::zeros(3 * n);
     let mut correct = |s: &mut State, y: &[f64], yhat: &[f64]| {
-        for k in 0..m {
-            innov[k] = y.get(k).copied().unwrap_or(0.0) - yhat[k];
+        for (k, (d, p)) in innov.iter_mut().zip(yhat).enumerate() {
+            *d = y.get(k).copied().unwrap_or(0.0) - p;
         }
         crate::dense::gemv(&mut dx, gain, &innov, crate::dense::Op::Set);
         // The whole correction, stuck joints included. It used to be removed along a

@@ -396,12 +396,11 @@ pub fn innovations(
         &pred.gain,
         pred.initial.as_deref(),
         &mut |i, yi| {
-            let zi = &response[i];
-            for k in 0..m {
-                e[k] = zi[k] - yi[k];
+            for ((d, z), y) in e.iter_mut().zip(&response[i]).zip(yi) {
+                *d = z - y;
             }
             crate::dense::gemv(&mut w, &pred.whiten, &e, crate::dense::Op::Set);
-            r.extend(w.iter());
+            r.extend_from_slice(w.as_slice());
         },
     )?;
     pred.project(&mut r);
