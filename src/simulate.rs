@@ -16,6 +16,7 @@
 
 #![allow(non_snake_case)]
 
+use crate::dense::product;
 use nalgebra::{DMatrix, DVector};
 use rand::RngExt;
 use rand::SeedableRng;
@@ -887,7 +888,7 @@ pub fn each_prediction_with_observer(
     let mut innov = DVector::zeros(m);
     let mut dx = DVector::zeros(3 * n);
     let mut correct = |s: &mut State, y: &[f64], yhat: &[f64]| {
-        for (k, (d, p)) in innov.iter_mut().zip(yhat).enumerate() {
+        for (k, (d, p)) in innov.as_mut_slice().iter_mut().zip(yhat).enumerate() {
             *d = y.get(k).copied().unwrap_or(0.0) - p;
         }
         crate::dense::gemv(&mut dx, gain, &innov, crate::dense::Op::Set);
@@ -906,7 +907,7 @@ pub fn each_prediction_with_observer(
             .into_iter()
             .zip(dx.chunks_exact(n))
         {
-            for (x, e) in w.iter_mut().zip(d) {
+            for (x, e) in w.as_mut_slice().iter_mut().zip(d) {
                 *x += e;
             }
         }
@@ -1342,15 +1343,21 @@ impl SlipSampleMap {
         let mut gb = DMatrix::<f64>::zeros(3 * n, q);
         for j in 1..=L {
             let t = j as f64 / L as f64;
-            s = &s * &T;
-            g0 = &T * &g0 + &Qp * (1.0 - t);
-            g1 = &T * &g1 + &Qp * t;
-            gb = &T * &gb + &Qb;
+            s = product(&s, &T);
+            g0 = product(&T, &g0) + &Qp * (1.0 - t);
+            g1 = product(&T, &g1) + &Qp * t;
+            gb = product(&T, &gb) + &Qb;
             let rows = (r * (j - 1), 0);
             check_state.view_mut(rows, (r, 3 * n)).copy_from(&s);
-            check_p0.view_mut(rows, (r, ne)).copy_from(&(&select * &g0));
-            check_p1.view_mut(rows, (r, ne)).copy_from(&(&select * &g1));
-            check_b.view_mut(rows, (r, q)).copy_from(&(&select * &gb));
+            check_p0
+                .view_mut(rows, (r, ne))
+                .copy_from(&product(&select, &g0));
+            check_p1
+                .view_mut(rows, (r, ne))
+                .copy_from(&product(&select, &g1));
+            check_b
+                .view_mut(rows, (r, q))
+                .copy_from(&product(&select, &gb));
         }
         let abs_sum = |m: &DMatrix<f64>, row: usize| m.row(row).iter().map(|v| v.abs()).sum();
         let row_sums = (0..r * L)
@@ -1582,19 +1589,19 @@ impl ComposedSubsteps {
         let mut g1 = DMatrix::<f64>::zeros(3 * n, ne);
         for j in 1..=L {
             let t = j as f64 / L as f64;
-            s = &s * &T;
-            g0 = &T * &g0 + &Q * (1.0 - t);
-            g1 = &T * &g1 + &Q * t;
+            s = product(&s, &T);
+            g0 = product(&T, &g0) + &Q * (1.0 - t);
+            g1 = product(&T, &g1) + &Q * t;
             let rows = (3 * q * (j - 1), 0);
             free_state.view_mut(rows, (3 * q, 3 * n)).copy_from(&s);
             free_p0
                 .view_mut(rows, (3 * q, ne))
-                .copy_from(&(&lc3t * &g0));
+                .copy_from(&product(&lc3t, &g0));
             free_p1
                 .view_mut(rows, (3 * q, ne))
-                .copy_from(&(&lc3t * &g1));
+                .copy_from(&product(&lc3t, &g1));
             if j < L {
-                let imp = &s * &Gf;
+                let imp = product(&s, &Gf);
                 for c in 0..3 * q {
                     for m in 0..q {
                         impulse_by_lag[c * q + m][j - 1] = imp[(c, m)];
@@ -1609,7 +1616,7 @@ impl ComposedSubsteps {
                 .view_mut((0, q * (j - 1)), (3 * n, q))
                 .copy_from(&col);
             if j > 1 {
-                col = &T * &col;
+                col = product(&T, &col);
             }
         }
         let phi = matrix_power(T, L);

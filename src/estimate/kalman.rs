@@ -844,7 +844,7 @@ fn connection_deformation(
     da: &mut DVector<f64>,
 ) {
     for (out, w) in [(d, &s.u), (dv, &s.v), (da, &s.a)] {
-        for (c, o) in out.iter_mut().enumerate() {
+        for (c, o) in out.as_mut_slice().iter_mut().enumerate() {
             *o = crate::dense::dot(lc.column(c).as_slice(), w.as_slice());
         }
     }

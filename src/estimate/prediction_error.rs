@@ -396,7 +396,7 @@ pub fn innovations(
         &pred.gain,
         pred.initial.as_deref(),
         &mut |i, yi| {
-            for ((d, z), y) in e.iter_mut().zip(&response[i]).zip(yi) {
+            for ((d, z), y) in e.as_mut_slice().iter_mut().zip(&response[i]).zip(yi) {
                 *d = z - y;
             }
             crate::dense::gemv(&mut w, &pred.whiten, &e, crate::dense::Op::Set);
