@@ -307,6 +307,32 @@ fn brent_minimise(
 mod tests {
     use super::*;
 
+    /// A remembered value is run once per key (the bits of every argument), and a search that
+    /// remembers gives the answer of one that does not.
+    #[test]
+    fn a_remembered_likelihood_runs_once_per_key() {
+        let runs = std::sync::atomic::AtomicUsize::new(0);
+        let memo = Remembered::default();
+        let f = |x: f64, y: f64| {
+            memo.value(&[x, y], || {
+                runs.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                -(x.ln() - 1.0).powi(2) - y
+            })
+        };
+        assert_eq!(f(2.0, 0.0), f(2.0, 0.0));
+        assert_eq!(runs.load(std::sync::atomic::Ordering::Relaxed), 1);
+        let _ = (f(2.0, 1.0), f(-0.0, 0.0), f(0.0, 0.0));
+        assert_eq!(runs.load(std::sync::atomic::Ordering::Relaxed), 4);
+        let plain = |x: f64| -(x.ln() - 1.0).powi(2);
+        let remembered = |x: f64| f(x, 0.0);
+        let a = maximise_log_parallel(1e-3, 1e3, 7, 12, &plain);
+        let b = maximise_log_parallel(1e-3, 1e3, 7, 12, &remembered);
+        assert_eq!(
+            (a.0.to_bits(), a.1.to_bits(), a.2),
+            (b.0.to_bits(), b.1.to_bits(), b.2)
+        );
+    }
+
     /// Deterministic standard normal samples (xorshift + Box–Muller).
     fn normals(n: usize, mut s: u64) -> Vec<f64> {
         let mut u = || {
