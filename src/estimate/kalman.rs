@@ -582,17 +582,18 @@ impl ResidualEstimator for KalmanEstimator {
         let len = self.hist_sample.len();
         if !self.smoothed {
             // Backward pass, in place: hist_pred[i] becomes z^s_i. Allocates two work
-            // vectors once per pass (not per sample).
+            // vectors once per pass (not per sample); the stored innovations and predictions
+            // are read and updated as slices.
             let mut lam = DVector::<f64>::zeros(nz);
             let mut tmp = DVector::<f64>::zeros(nz);
+            use crate::dense::{Op, gemv, gemv_slices};
             for i in (0..len).rev() {
-                let e = DVector::from_column_slice(&self.hist_innov[i * m..(i + 1) * m]);
-                crate::dense::gemv(&mut tmp, &sm.psi_t, &lam, crate::dense::Op::Set);
-                crate::dense::gemv(&mut tmp, &sm.ht_sinv, &e, crate::dense::Op::Add);
+                let e = &self.hist_innov[i * m..(i + 1) * m];
+                gemv(&mut tmp, &sm.psi_t, &lam, Op::Set);
+                gemv_slices(tmp.as_mut_slice(), &sm.ht_sinv, e, Op::Add);
                 std::mem::swap(&mut lam, &mut tmp);
-                let mut zi = DVector::from_column_slice(&self.hist_pred[i * nz..(i + 1) * nz]);
-                crate::dense::gemv(&mut zi, &sm.p_prior, &lam, crate::dense::Op::Add);
-                self.hist_pred[i * nz..(i + 1) * nz].copy_from_slice(zi.as_slice());
+                let zi = &mut self.hist_pred[i * nz..(i + 1) * nz];
+                gemv_slices(zi, &sm.p_prior, lam.as_slice(), Op::Add);
             }
             self.smoothed = true;
         }
