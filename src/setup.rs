@@ -260,6 +260,18 @@ pub enum Quantity {
     Acceleration,
 }
 
+impl Quantity {
+    /// Which block of the state `(u; u̇; ü)` a channel of this quantity reads (0, 1, 2):
+    /// its index in a `3n` state is `block · n + dof`.
+    pub fn block(self) -> usize {
+        match self {
+            Quantity::Displacement => 0,
+            Quantity::Velocity => 1,
+            Quantity::Acceleration => 2,
+        }
+    }
+}
+
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SensorSpec {

@@ -601,7 +601,7 @@ impl TruthSystem {
     ) -> Option<()> {
         let n = self.model.n();
         let (q, steps) = (map.q, map.substeps);
-        let ne = (map.input.len() - 3 * n - q * steps) / 2;
+        let ne = map.ne;
         {
             let input = map.input.as_mut_slice();
             input[..n].copy_from_slice(s.u.as_slice());
@@ -866,18 +866,11 @@ pub fn each_prediction_with_observer(
         }
     }
     let mut yi = vec![0.0; m];
-    // Each channel as (0 = u, 1 = u̇, 2 = ü; its DOF).
+    // Each channel as (its block of the state, its DOF).
     let channels: Vec<(usize, usize)> = model
         .stations
         .iter()
-        .map(|st| {
-            let kind = match st.quantity {
-                crate::setup::Quantity::Displacement => 0,
-                crate::setup::Quantity::Velocity => 1,
-                crate::setup::Quantity::Acceleration => 2,
-            };
-            (kind, st.dof)
-        })
+        .map(|st| (st.quantity.block(), st.dof))
         .collect();
     let record = |s: &State, y: &mut [f64]| {
         let state = [s.u.as_slice(), s.v.as_slice(), s.a.as_slice()];
@@ -1243,6 +1236,8 @@ struct SlipSampleMap {
     const_force: DVector<f64>,
     /// The inputs side by side, `(x; p_{i−1}; p_i; b)` (`3n + 2 ne + q`).
     input: DVector<f64>,
+    /// Excitation channels `ne`.
+    ne: usize,
     /// Work vectors.
     checks: DVector<f64>,
     next: DVector<f64>,
@@ -1384,6 +1379,7 @@ impl SlipSampleMap {
             select: select_taps,
             const_force,
             input: DVector::zeros(3 * n + 2 * ne + q),
+            ne,
             checks: DVector::zeros(r * L),
             next: DVector::zeros(3 * n),
             signs: vec![0.0; r],
@@ -1396,7 +1392,7 @@ impl SlipSampleMap {
     fn try_sample(&mut self, s: &mut State, pa: &[f64], pb: &[f64]) -> bool {
         use crate::dense::amax;
         let n = s.u.len();
-        let ne = (self.input.len() - 3 * n - self.const_force.len()) / 2;
+        let ne = self.ne;
         let input = self.input.as_mut_slice();
         let (x, rest) = input.split_at_mut(3 * n);
         let (p0, rest) = rest.split_at_mut(ne);
@@ -1553,6 +1549,8 @@ struct ComposedSubsteps {
     /// The inputs side by side: the start state `x`, `p_{i−1}`, `p_i` and the forces of the
     /// sample's sub-steps (`q` per sub-step), `3n + 2 ne + qL`.
     input: DVector<f64>,
+    /// Excitation channels `ne`.
+    ne: usize,
     /// Work: the free predictions.
     free: DVector<f64>,
     /// The sample's forces per connection, latest sub-step first (`[m][L − 1 − j]`).
@@ -1628,6 +1626,7 @@ impl ComposedSubsteps {
             impulse_by_lag,
             end_map: side_by_side(&[&phi, &g0, &g1, &force_to_end]),
             input: DVector::zeros(3 * n + 2 * ne + q * L),
+            ne,
             free: DVector::zeros(3 * q * L),
             forces_reversed: vec![vec![0.0; L]; q],
             next: DVector::zeros(3 * n),

@@ -1045,7 +1045,7 @@ fn filter_dare_doubling(
         let akt = crate::dense::transposed(&Ak);
         let g_next = &Gk + &Ak * wg * &akt;
         let h_next = &Hk + &akt * &Hk * &wa;
-        let change = crate::dense::amax_of_difference(h_next.as_slice(), Hk.as_slice());
+        let change = crate::dense::amax((&h_next - &Hk).as_slice());
         let scale = crate::dense::amax(h_next.as_slice()).max(f64::MIN_POSITIVE);
         if change >= last_change
             && last_change <= DARE_ROUND_OFF * scale

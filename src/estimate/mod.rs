@@ -232,11 +232,7 @@ impl Stations {
     /// Index of a channel in the stacked state (u; v; a).
     pub fn state_index(&self, k: usize, n: usize) -> usize {
         let (dof, q) = self.channels[k];
-        match q {
-            Quantity::Displacement => dof,
-            Quantity::Velocity => n + dof,
-            Quantity::Acceleration => 2 * n + dof,
-        }
+        q.block() * n + dof
     }
 
     /// Rows of a stacked (3n × k) matrix picked by the channels: H·X.

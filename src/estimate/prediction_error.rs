@@ -335,12 +335,11 @@ pub fn predictor(
         + &gamma_all * gamma_all.transpose() * model_error.powi(2);
     let H = DMatrix::from_fn(m, 3 * n, |k, j| {
         let st = &model.stations[k];
-        let idx = match st.quantity {
-            crate::setup::Quantity::Displacement => st.dof,
-            crate::setup::Quantity::Velocity => n + st.dof,
-            crate::setup::Quantity::Acceleration => 2 * n + st.dof,
-        };
-        if idx == j { 1.0 } else { 0.0 }
+        if st.quantity.block() * n + st.dof == j {
+            1.0
+        } else {
+            0.0
+        }
     });
     let V = DMatrix::from_diagonal(&DVector::from_iterator(m, sigma.iter().map(|s| s * s)));
     // Φ reads the state only through the first sub-step's predictors (rank 2n).
