@@ -637,6 +637,62 @@ fn kalman_log_likelihood(
     walk: f64,
     model_error: f64,
 ) -> f64 {
+    kalman_filter_run(
+        setup,
+        with_terms,
+        params,
+        opts,
+        sigma,
+        data,
+        walk,
+        model_error,
+    )
+    .map_or(f64::NEG_INFINITY, |est| est.log_likelihood())
+}
+
+/// [`kalman_log_likelihood`] maximised over a common factor λ of the three noise
+/// covariances, and that λ
+/// ([`crate::estimate::kalman::KalmanEstimator::concentrated_log_likelihood`]); `(−∞, NaN)`
+/// when the filter cannot be built or diverges.
+#[allow(clippy::too_many_arguments)]
+fn kalman_concentrated_log_likelihood(
+    setup: &Setup,
+    with_terms: &Model,
+    params: &[f64],
+    opts: &IdentifyOptions,
+    sigma: &[f64],
+    data: &TestData,
+    walk: f64,
+    model_error: f64,
+) -> (f64, f64) {
+    kalman_filter_run(
+        setup,
+        with_terms,
+        params,
+        opts,
+        sigma,
+        data,
+        walk,
+        model_error,
+    )
+    .map_or((f64::NEG_INFINITY, f64::NAN), |est| {
+        est.concentrated_log_likelihood()
+    })
+}
+
+/// A filter-only Kalman run over (a prefix of) the data; `None` when the filter cannot be
+/// built or diverges.
+#[allow(clippy::too_many_arguments)]
+fn kalman_filter_run(
+    setup: &Setup,
+    with_terms: &Model,
+    params: &[f64],
+    opts: &IdentifyOptions,
+    sigma: &[f64],
+    data: &TestData,
+    walk: f64,
+    model_error: f64,
+) -> Option<crate::estimate::kalman::KalmanEstimator> {
     use crate::estimate::kalman::{KalmanEstimator, KalmanOptions};
     let inputs = EstimatorInputs {
         model: with_terms,
@@ -661,28 +717,22 @@ fn kalman_log_likelihood(
         likelihood_only: true,
         horizon: Some(len),
     };
-    let Ok(mut est) = KalmanEstimator::with_options(inputs, ko, 0) else {
-        return f64::NEG_INFINITY;
-    };
+    let mut est = KalmanEstimator::with_options(inputs, ko, 0).ok()?;
     if let Some(x) = &opts.initial_state {
         est.set_initial_state(x);
     }
     let mut out = StepOutput::new(setup.connections.len());
     est.start(data.samples[0], &data.excitation[0]);
     for i in 1..len {
-        if est
-            .step(
-                data.samples[i],
-                &data.excitation[i],
-                &data.response[i],
-                &mut out,
-            )
-            .is_err()
-        {
-            return f64::NEG_INFINITY;
-        }
+        est.step(
+            data.samples[i],
+            &data.excitation[i],
+            &data.response[i],
+            &mut out,
+        )
+        .ok()?;
     }
-    est.log_likelihood()
+    Some(est)
 }
 
 /// Samples on which the Kalman tuning's likelihood is evaluated (a prefix of longer records):
@@ -699,6 +749,15 @@ pub const TUNE_SAMPLES: usize = 10_000;
 /// same to 1e-4.
 pub const RETUNE_WALK_DECADES: f64 = 3.0;
 
+/// Range, in decades of the force scale, of the first tuning's search of the random-walk
+/// std per unit noise scale when the scale is concentrated out (a grid of one point per
+/// decade, then Brent). Why this wide: the coordinate search it replaces reached the walk
+/// over 1e-6…1e2 of the force scale at noise scales 1e-8…1e1 and ±30× around; the ratio
+/// of the two spans more than either — a noise level overestimated by the data's
+/// differences puts it above 1e2 (measured on the benchmark record: 6.7 at noise scale
+/// 4.6, 1.6e5 N per unit scale, the scale 1.75e3 N).
+const CONCENTRATED_WALK_DECADES: (f64, f64) = (-6.0, 4.0);
+
 /// Log-likelihood gain of a re-tune's noise scale or model-error std above which σ_R is
 /// searched again at it (half of the 95 % point of χ²₁, 3.84: a smaller gain is no evidence
 /// the other tunings moved, and σ_R's optimum with them moves less than its tolerance).
@@ -706,9 +765,26 @@ const RETUNE_SIGNIFICANT_GAIN: f64 = 1.92;
 
 /// Choose the Kalman estimator's random-walk std σ_R (and, when `opts.tune_noise_scale`, a
 /// common scale of the estimated channel noise levels) by maximising the innovation
-/// likelihood of filter-only runs: σ_R over a log grid of 1e-6…1e2 × the force scale with
-/// Brent's method ([`crate::estimate::tuning::maximise_log`]), then the noise scale over
-/// 1e-8…1e1, then σ_R again around the new optimum.
+/// likelihood of filter-only runs.
+///
+/// When every channel's noise level is estimated (the default) and the model-error std is
+/// neither given nor tuned, the common scale is concentrated out exactly: scaling every
+/// noise covariance by λ leaves the filter's gain and innovations unchanged, so the
+/// likelihood's maximum over λ is closed-form
+/// ([`crate::estimate::kalman::KalmanEstimator::concentrated_log_likelihood`]) and one
+/// search remains, of σ_R per unit scale over [`CONCENTRATED_WALK_DECADES`] of the force
+/// scale (a re-tune: ± [`RETUNE_WALK_DECADES`] around the previous ratio); σ_R, the noise
+/// scale and the model-error std are then the ratio's values times `√λ̂`. Why: the
+/// coordinate search below (σ_R, then the scale, then σ_R again) came near the same joint
+/// maximum in 41 filter runs at the first tuning and 24 at a re-tune; this reaches it in 17
+/// and 15 (measured on the benchmark record: σ_R 30,980 vs 30,988 N, scale 4.618 vs 4.635,
+/// log-likelihood −55,505.07 vs −55,505.38; BENCHMARKS.md and ACCURACY.md, thirtieth
+/// session).
+///
+/// Otherwise (a channel's noise level given, or the model-error std tuned): σ_R over a log
+/// grid of 1e-6…1e2 × the force scale with Brent's method
+/// ([`crate::estimate::tuning::maximise_log`]), then the noise scale over 1e-8…1e1, then σ_R
+/// again around the new optimum.
 ///
 /// `previous`: a tuning made at earlier parameters of the same record (the passes re-tune at
 /// each pass's answer until they settle). The search then starts from it: σ_R over
@@ -753,6 +829,62 @@ pub fn tune_kalman(
         })
     };
     let tunes_scale = opts.tune_noise_scale && estimated.iter().any(|&e| e);
+    // Every noise level free to scale (every channel's estimated, the model-error std the
+    // small default): the common scale is concentrated out exactly (see
+    // [`CONCENTRATED_WALK_DECADES`]) and one search of the walk's ratio to it remains.
+    if tunes_scale
+        && estimated.iter().all(|&e| e)
+        && opts.model_error_std.is_none()
+        && !opts.tune_model_error
+    {
+        let remembered = crate::estimate::tuning::Remembered::<(f64, f64)>::default();
+        let concentrated = |w: f64| {
+            remembered.value(&[w], || {
+                kalman_concentrated_log_likelihood(
+                    setup,
+                    &with_terms,
+                    params,
+                    opts,
+                    sigma,
+                    data,
+                    w,
+                    model_error,
+                )
+            })
+        };
+        let (lo, hi, grid) = match previous {
+            Some(prev) => {
+                let reach = 10f64.powf(RETUNE_WALK_DECADES);
+                let w0 = prev.force_walk_std / prev.noise_scale;
+                (
+                    w0 / reach,
+                    w0 * reach,
+                    2 * RETUNE_WALK_DECADES.round() as usize + 1,
+                )
+            }
+            None => (
+                10f64.powf(CONCENTRATED_WALK_DECADES.0) * scale,
+                10f64.powf(CONCENTRATED_WALK_DECADES.1) * scale,
+                (CONCENTRATED_WALK_DECADES.1 - CONCENTRATED_WALK_DECADES.0).round() as usize + 1,
+            ),
+        };
+        let (ratio, ll, runs) = maximise_log(lo, hi, grid, 12, &|w| concentrated(w).0);
+        let lambda = concentrated(ratio).1;
+        if ll.is_finite() && lambda.is_finite() && lambda > 0.0 {
+            // The scale within the range the coordinate search allowed (1e-8…1e1); the gain
+            // depends on the ratios alone, so a clamped scale keeps the filter's innovations.
+            let noise_scale = lambda.sqrt().clamp(1e-8, 1e1);
+            return Ok(KalmanTuning {
+                model_error_std: model_error * noise_scale,
+                force_walk_std: ratio * noise_scale,
+                noise_scale,
+                sigma: scaled(noise_scale),
+                log_likelihood: ll,
+                runs,
+                model_error_taken: false,
+            });
+        }
+    }
     // A search within a factor of 30 either way of a value already found (half-decade grid of
     // five points, then at most `refine` steps of Brent's method).
     let around = |x: f64, refine: usize, f: &(dyn Fn(f64) -> f64 + Sync)| {

@@ -402,6 +402,23 @@ impl KalmanEstimator {
         -0.5 * (self.nis_sum + self.nis_count as f64 * self.log_det)
     }
 
+    /// The innovation log-likelihood maximised over a common factor λ of every noise
+    /// covariance the filter was built with (measurement, random walk, model error), and
+    /// that λ: `(ℓ(λ̂), λ̂)` with `λ̂ = Σ eᵀΣ⁻¹e / (N m)`, the mean normalised innovation
+    /// squared per channel.
+    ///
+    /// Why exact: the Riccati recursion is homogeneous of degree one in (P, Q, R), so
+    /// scaling every covariance by λ scales the predicted covariance and Σ by λ and leaves
+    /// the gain — hence every innovation — unchanged; `ℓ(λ) = −½ Σ (eᵀΣ⁻¹e / λ + log det Σ
+    /// + m ln λ)` is then maximised in closed form. The tuning searches the ratios of the
+    /// noise levels only (see `identify::tune_kalman`).
+    pub fn concentrated_log_likelihood(&self) -> (f64, f64) {
+        let entries = (self.nis_count * self.stations.m()) as f64;
+        let lambda = self.nis_sum / entries;
+        let ll = -0.5 * (entries * (1.0 + lambda.ln()) + self.nis_count as f64 * self.log_det);
+        (ll, lambda)
+    }
+
     /// Mean normalised innovation squared per channel (≈ 1 when the tuning is consistent).
     pub fn mean_nis(&self) -> f64 {
         self.nis_sum / (self.nis_count.max(1) * self.stations.m()) as f64
@@ -1225,6 +1242,78 @@ dt_s = 0.001
             t.iter()
                 .any(|(k, v)| k == "tuned_force_walk_std_N" && *v > 0.0)
         );
+    }
+
+    /// Scaling every noise covariance by λ leaves the innovations unchanged (the gain is
+    /// homogeneous of degree zero), so the concentrated log-likelihood at (σ, w, e) is the
+    /// plain one at (√λ̂ σ, √λ̂ w, √λ̂ e), and no other λ does better — the law the
+    /// tuning's one-variable search rests on (`identify::tune_kalman`).
+    #[test]
+    fn the_concentrated_likelihood_is_the_plain_one_at_its_scale_and_its_maximum() {
+        use crate::setup::Setup;
+        use crate::simulate::{Noise, Scenario, SimulateOptions, simulate};
+        let s = Setup::from_toml(SDOF_FRICTION, "t").unwrap();
+        let steps = 500;
+        let sim = simulate(
+            &s,
+            &SimulateOptions {
+                scenario: Scenario::Random { rms: 20.0 },
+                steps,
+                dt_s: s.dt_s,
+                substeps: 4,
+                noise: Noise::Additive(0.05),
+                seed: 11,
+            },
+        )
+        .unwrap();
+        let model = crate::model::Model::for_identification(&s).unwrap();
+        let params = s.initial_params();
+        let with_terms = model.with_connection_terms(&s, &params);
+        let run = |scale: f64| {
+            let inputs = EstimatorInputs {
+                model: &with_terms,
+                law: ConnectionLaw::new(&s, &params),
+                dt_s: s.dt_s,
+                substeps: 1,
+                newmark: s.newmark,
+                weighting: s.estimator.weighting,
+                channel_sigma: vec![1e-3 * scale; s.sensors.len()],
+                spectral_diagnostics: false,
+            };
+            let ko = KalmanOptions {
+                force_walk_std: 3.0 * scale,
+                model_error_std: 1e-3 * scale,
+                smooth: false,
+                semi_implicit: true,
+                likelihood_only: true,
+                horizon: Some(steps),
+            };
+            let mut est = KalmanEstimator::with_options(inputs, ko, 0).unwrap();
+            let mut out = StepOutput::new(1);
+            est.start(0, &sim.excitation[0]);
+            for i in 1..steps {
+                est.step(i as u64, &sim.excitation[i], &sim.response[i], &mut out)
+                    .unwrap();
+            }
+            (est.log_likelihood(), est.concentrated_log_likelihood())
+        };
+        let (plain, (concentrated, lambda)) = run(1.0);
+        assert!(lambda.is_finite() && lambda > 0.0 && (lambda - 1.0).abs() > 0.1);
+        assert!(concentrated >= plain, "{concentrated} < {plain}");
+        let (at_scale, (again, lambda_again)) = run(lambda.sqrt());
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(1.0);
+        assert!(
+            close(at_scale, concentrated),
+            "{at_scale} vs {concentrated}"
+        );
+        assert!(close(again, concentrated), "{again} vs {concentrated}");
+        assert!(
+            (lambda_again - 1.0).abs() < 1e-9,
+            "λ at its own scale {lambda_again}"
+        );
+        for f in [0.8, 1.25] {
+            assert!(run(lambda.sqrt() * f).0 < at_scale);
+        }
     }
 
     /// A likelihood-only estimator (the tuning's runs) gives the full construction's

@@ -138,14 +138,22 @@ pub const LOG_TOLERANCE: f64 = 0.01;
 /// the same bits, so a remembered value changes nothing but the time. The caller keys it by
 /// every argument that varies while the memo lives (the data and the model it borrows for
 /// that time do not).
-#[derive(Debug, Default)]
-pub struct Remembered {
-    values: std::sync::Mutex<std::collections::HashMap<Vec<u64>, f64>>,
+#[derive(Debug)]
+pub struct Remembered<T = f64> {
+    values: std::sync::Mutex<std::collections::HashMap<Vec<u64>, T>>,
 }
 
-impl Remembered {
+impl<T> Default for Remembered<T> {
+    fn default() -> Self {
+        Self {
+            values: std::sync::Mutex::new(std::collections::HashMap::new()),
+        }
+    }
+}
+
+impl<T: Copy> Remembered<T> {
     /// The value at `key`: remembered, or `run()` (then remembered).
-    pub fn value(&self, key: &[f64], run: impl FnOnce() -> f64) -> f64 {
+    pub fn value(&self, key: &[f64], run: impl FnOnce() -> T) -> T {
         let key: Vec<u64> = key.iter().map(|x| x.to_bits()).collect();
         if let Some(v) = self.values.lock().ok().and_then(|m| m.get(&key).copied()) {
             return v;

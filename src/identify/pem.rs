@@ -73,6 +73,13 @@ enum ForceSearch {
     /// ± [`NEAR_DECADES`] around a force already found, half-decade grid, at most 6 Brent steps
     /// (not positive or not finite: over the whole range, half-decade grid).
     Near(f64),
+    /// Over [`PEM_TUNE_RANGE`]: the decade grid of [`ForceSearch::Coarse`], then at most 8
+    /// steps of Brent's method to [`crate::estimate::tuning::LOG_TOLERANCE`] — the coarse and
+    /// the near search in one when both would run on the same samples (a record of at most
+    /// [`LEVEL_CHOICE_SAMPLES`]): Brent's bracket, the best grid point ± a decade, is the
+    /// near grid's span, and its neighbours' values are already known. Why: 19 runs (8 + 11)
+    /// became 14 at most (BENCHMARKS.md, thirtieth session).
+    Whole,
 }
 
 /// Half-width, in decades, of the observer-force search at the chosen sub-step level around
@@ -175,6 +182,7 @@ fn tune_pem_force(
             6,
         ),
         ForceSearch::Coarse => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 6, 2),
+        ForceSearch::Whole => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 6, 8),
         ForceSearch::Near(_) => (PEM_TUNE_RANGE[0] * scale, PEM_TUNE_RANGE[1] * scale, 11, 6),
     };
     // Each search runs alone: its grid on both cores (the same points and comparisons, so
@@ -537,17 +545,34 @@ pub(super) fn refine_by_prediction_error<'a>(
         .iter()
         .find(|t| t.2 >= best - significant)
         .map_or(opts.substeps, |t| t.0);
-    let force_std = if tuned.is_empty() {
-        0.0
-    } else {
-        coarse_force_of(sub)
-    };
     // The chosen level's force, searched again near the coarse one on the first
     // [`FORCE_TUNE_SAMPLES`] (see there); with it the likelihood of the start values there.
     let force_prefix = data.prefix(FORCE_TUNE_SAMPLES);
     let tune_data = force_prefix.as_ref().unwrap_or(data);
+    // A record no longer than [`LEVEL_CHOICE_SAMPLES`] is its own choice and tuning data:
+    // a chosen level whose force the choice did not tune is then tuned by one search
+    // ([`ForceSearch::Whole`]), not a coarse one and a near one over the same samples.
+    let one_search = prefix.is_none()
+        && force_prefix.is_none()
+        && tuned.iter().any(|t| t.0 == sub && t.1.is_none());
+    let force_std = if tuned.is_empty() || one_search {
+        0.0
+    } else {
+        coarse_force_of(sub)
+    };
     let near = |level: usize, coarse_force: f64| {
-        if tuned.iter().any(|t| t.0 == level) {
+        if one_search && level == sub {
+            tune_pem_force(
+                setup,
+                model,
+                tune_data,
+                sigma,
+                start,
+                level,
+                initial,
+                ForceSearch::Whole,
+            )
+        } else if tuned.iter().any(|t| t.0 == level) {
             tune_pem_force(
                 setup,
                 model,
