@@ -1053,15 +1053,16 @@ fn filter_dare_doubling(
     let mut steps = 0;
     for _ in 0..max_steps {
         steps += 1;
-        let w = &id + &Gk * &Hk;
+        use crate::dense::product;
+        let w = &id + product(&Gk, &Hk);
         let lu = w.lu();
         let solver = crate::dense::LuSolver::new(&lu);
         let Some(wa) = solver.solve(&Ak) else { break };
         let Some(wg) = solver.solve(&Gk) else { break };
-        let a_next = &Ak * &wa;
+        let a_next = product(&Ak, &wa);
         let akt = crate::dense::transposed(&Ak);
-        let g_next = &Gk + &Ak * wg * &akt;
-        let h_next = &Hk + &akt * &Hk * &wa;
+        let g_next = &Gk + product(&product(&Ak, &wg), &akt);
+        let h_next = &Hk + product(&product(&akt, &Hk), &wa);
         let change = crate::dense::amax((&h_next - &Hk).as_slice());
         let scale = crate::dense::amax(h_next.as_slice()).max(f64::MIN_POSITIVE);
         if change >= last_change
