@@ -419,18 +419,21 @@ pub fn innovations(
 /// use wider ones ([`POLISH_SECANT`], [`ERROR_SECANTS`]).
 const SECANT: f64 = 0.5;
 
-/// The descent's Jacobians in a round that another round follows (the first of the two
-/// whole-record rounds, or the prefix's round) are forward differences over the same width
-/// (`[p, p + 2h]` instead of `[p − h, p + h]`): one run per parameter instead of two. Why:
-/// that round's end point is only where the next round's observer is built — the answer,
-/// its Jacobian, the polish and the error secants all come from the last round, whose
-/// differences stay central — and a forward difference is still a descent direction that
-/// the Levenberg–Marquardt test (a step is taken only when the cost goes down) guards.
-/// Measured on the benchmark record: the refinement's predictor runs 63 → 45; paired over
-/// 360 records (friction and spring setups, seeds 7001–7020, data sub-steps 1, 8, 64,
-/// noise 1, 10, 100 %) coverage per row within one estimate of the central differences',
-/// the median shift 0.00–0.26 errors (ACCURACY.md, thirtieth session).
-const FORWARD_BEFORE_LAST_ROUND: bool = true;
+/// Whether the descent's Jacobians in this round are forward differences over the same
+/// width (`[p, p + 2h]` instead of `[p − h, p + h]`: one run per parameter instead of two):
+/// in a round that another follows (the first of the two whole-record rounds, or a long
+/// record's prefix round). Why: that round's end point is only where the next round starts
+/// and builds its observer — the answer, its Jacobian, the polish and the error secants all
+/// come from the last round, whose differences stay central — and a forward difference is
+/// still a descent direction that the Levenberg–Marquardt test (a step is taken only when
+/// the cost goes down) guards. Measured on the benchmark record: the refinement's predictor
+/// runs 63 → 45; paired over 360 records (friction and spring setups, seeds 7001–7020, data
+/// sub-steps 1, 8, 64, noise 1, 10, 100 %) coverage per row within one estimate of the
+/// central differences', the median shift 0.00–0.26 errors (ACCURACY.md, thirtieth
+/// session).
+fn forward_differences(on_prefix: bool, whole_rounds_left: usize) -> bool {
+    on_prefix || whole_rounds_left == 2
+}
 
 /// Damped steps tried per Levenberg–Marquardt iteration (μ raised tenfold after each that
 /// does not lower the cost) before the descent stops.
@@ -1281,8 +1284,8 @@ pub fn refine(
             continue;
         }
         // A round that another follows only brings the next one's observer near the
-        // answer: its Jacobians by forward differences ([`FORWARD_BEFORE_LAST_ROUND`]).
-        let forward = FORWARD_BEFORE_LAST_ROUND && (on_prefix || whole_rounds_left == 2);
+        // answer: its Jacobians by forward differences (see there).
+        let forward = forward_differences(on_prefix, whole_rounds_left);
         let mut J = jacobian(
             setup, model, &basis, &p, &scales, &pred, excitation, response, substeps, None, forward,
         )?;
