@@ -625,63 +625,9 @@ pub struct KalmanTuning {
     pub model_error_taken: bool,
 }
 
-/// Innovation log-likelihood of a filter-only Kalman run over (a prefix of) the data.
-#[allow(clippy::too_many_arguments)]
-fn kalman_log_likelihood(
-    setup: &Setup,
-    with_terms: &Model,
-    params: &[f64],
-    opts: &IdentifyOptions,
-    sigma: &[f64],
-    data: &TestData,
-    walk: f64,
-    model_error: f64,
-) -> f64 {
-    kalman_filter_run(
-        setup,
-        with_terms,
-        params,
-        opts,
-        sigma,
-        data,
-        walk,
-        model_error,
-    )
-    .map_or(f64::NEG_INFINITY, |est| est.log_likelihood())
-}
-
-/// [`kalman_log_likelihood`] maximised over a common factor λ of the three noise
-/// covariances, and that λ
-/// ([`crate::estimate::kalman::KalmanEstimator::concentrated_log_likelihood`]); `(−∞, NaN)`
-/// when the filter cannot be built or diverges.
-#[allow(clippy::too_many_arguments)]
-fn kalman_concentrated_log_likelihood(
-    setup: &Setup,
-    with_terms: &Model,
-    params: &[f64],
-    opts: &IdentifyOptions,
-    sigma: &[f64],
-    data: &TestData,
-    walk: f64,
-    model_error: f64,
-) -> (f64, f64) {
-    kalman_filter_run(
-        setup,
-        with_terms,
-        params,
-        opts,
-        sigma,
-        data,
-        walk,
-        model_error,
-    )
-    .map_or((f64::NEG_INFINITY, f64::NAN), |est| {
-        est.concentrated_log_likelihood()
-    })
-}
-
-/// A filter-only Kalman run over (a prefix of) the data; `None` when the filter cannot be
-/// built or diverges.
+/// A filter-only Kalman run over (a prefix of) the data, for its innovation log-likelihood
+/// (plain, or concentrated over a common scale of the noise covariances); `None` when the
+/// filter cannot be built or diverges.
 #[allow(clippy::too_many_arguments)]
 fn kalman_filter_run(
     setup: &Setup,
@@ -830,7 +776,8 @@ pub fn tune_kalman(
     let remembered = crate::estimate::tuning::Remembered::default();
     let likelihood = |s: f64, w: f64, e: f64| {
         remembered.value(&[s, w, e], || {
-            kalman_log_likelihood(setup, &with_terms, params, opts, &scaled(s), data, w, e)
+            kalman_filter_run(setup, &with_terms, params, opts, &scaled(s), data, w, e)
+                .map_or(f64::NEG_INFINITY, |est| est.log_likelihood())
         })
     };
     let tunes_scale = opts.tune_noise_scale && estimated.iter().any(|&e| e);
@@ -845,7 +792,7 @@ pub fn tune_kalman(
         let remembered = crate::estimate::tuning::Remembered::<(f64, f64)>::default();
         let concentrated = |w: f64| {
             remembered.value(&[w], || {
-                kalman_concentrated_log_likelihood(
+                kalman_filter_run(
                     setup,
                     &with_terms,
                     params,
@@ -855,6 +802,9 @@ pub fn tune_kalman(
                     w,
                     model_error,
                 )
+                .map_or((f64::NEG_INFINITY, f64::NAN), |est| {
+                    est.concentrated_log_likelihood()
+                })
             })
         };
         let (lo, hi, grid) = match previous {

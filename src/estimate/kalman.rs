@@ -1245,16 +1245,14 @@ dt_s = 0.001
         );
     }
 
-    /// Scaling every noise covariance by λ leaves the innovations unchanged (the gain is
-    /// homogeneous of degree zero), so the concentrated log-likelihood at (σ, w, e) is the
-    /// plain one at (√λ̂ σ, √λ̂ w, √λ̂ e), and no other λ does better — the law the
-    /// tuning's one-variable search rests on (`identify::tune_kalman`).
-    #[test]
-    fn the_concentrated_likelihood_is_the_plain_one_at_its_scale_and_its_maximum() {
-        use crate::setup::Setup;
+    /// A record of the one-DOF friction setup (random input of 20 N RMS, 4 data sub-steps).
+    fn sdof_record(
+        steps: usize,
+        noise: f64,
+        seed: u64,
+    ) -> (crate::setup::Setup, crate::simulate::Simulated) {
         use crate::simulate::{Noise, Scenario, SimulateOptions, simulate};
-        let s = Setup::from_toml(SDOF_FRICTION, "t").unwrap();
-        let steps = 500;
+        let s = crate::setup::Setup::from_toml(SDOF_FRICTION, "t").unwrap();
         let sim = simulate(
             &s,
             &SimulateOptions {
@@ -1262,40 +1260,63 @@ dt_s = 0.001
                 steps,
                 dt_s: s.dt_s,
                 substeps: 4,
-                noise: Noise::Additive(0.05),
-                seed: 11,
+                noise: Noise::Additive(noise),
+                seed,
             },
         )
         .unwrap();
-        let model = crate::model::Model::for_identification(&s).unwrap();
+        (s, sim)
+    }
+
+    /// A filter run over `sim` at the setup's initial parameters, with channel noise std
+    /// `sigma`, random-walk std `walk` and model-error std `model_error`.
+    fn sdof_filter_run(
+        s: &crate::setup::Setup,
+        sim: &crate::simulate::Simulated,
+        (sigma, walk, model_error): (f64, f64, f64),
+        likelihood_only: bool,
+    ) -> KalmanEstimator {
+        let model = crate::model::Model::for_identification(s).unwrap();
         let params = s.initial_params();
-        let with_terms = model.with_connection_terms(&s, &params);
+        let with_terms = model.with_connection_terms(s, &params);
+        let steps = sim.excitation.len();
+        let inputs = EstimatorInputs {
+            model: &with_terms,
+            law: ConnectionLaw::new(s, &params),
+            dt_s: s.dt_s,
+            substeps: 1,
+            newmark: s.newmark,
+            weighting: s.estimator.weighting,
+            channel_sigma: vec![sigma; s.sensors.len()],
+            spectral_diagnostics: false,
+        };
+        let ko = KalmanOptions {
+            force_walk_std: walk,
+            model_error_std: model_error,
+            smooth: false,
+            semi_implicit: true,
+            likelihood_only,
+            horizon: Some(steps),
+        };
+        let mut est = KalmanEstimator::with_options(inputs, ko, 0).unwrap();
+        let mut out = StepOutput::new(1);
+        est.start(0, &sim.excitation[0]);
+        for i in 1..steps {
+            est.step(i as u64, &sim.excitation[i], &sim.response[i], &mut out)
+                .unwrap();
+        }
+        est
+    }
+
+    /// Scaling every noise covariance by λ leaves the innovations unchanged (the gain is
+    /// homogeneous of degree zero), so the concentrated log-likelihood at (σ, w, e) is the
+    /// plain one at (√λ̂ σ, √λ̂ w, √λ̂ e), and no other λ does better — the law the
+    /// tuning's one-variable search rests on (`identify::tune_kalman`).
+    #[test]
+    fn the_concentrated_likelihood_is_the_plain_one_at_its_scale_and_its_maximum() {
+        let (s, sim) = sdof_record(500, 0.05, 11);
         let run = |scale: f64| {
-            let inputs = EstimatorInputs {
-                model: &with_terms,
-                law: ConnectionLaw::new(&s, &params),
-                dt_s: s.dt_s,
-                substeps: 1,
-                newmark: s.newmark,
-                weighting: s.estimator.weighting,
-                channel_sigma: vec![1e-3 * scale; s.sensors.len()],
-                spectral_diagnostics: false,
-            };
-            let ko = KalmanOptions {
-                force_walk_std: 3.0 * scale,
-                model_error_std: 1e-3 * scale,
-                smooth: false,
-                semi_implicit: true,
-                likelihood_only: true,
-                horizon: Some(steps),
-            };
-            let mut est = KalmanEstimator::with_options(inputs, ko, 0).unwrap();
-            let mut out = StepOutput::new(1);
-            est.start(0, &sim.excitation[0]);
-            for i in 1..steps {
-                est.step(i as u64, &sim.excitation[i], &sim.response[i], &mut out)
-                    .unwrap();
-            }
+            let est = sdof_filter_run(&s, &sim, (1e-3 * scale, 3.0 * scale, 1e-3 * scale), true);
             (est.log_likelihood(), est.concentrated_log_likelihood())
         };
         let (plain, (concentrated, lambda)) = run(1.0);
@@ -1322,51 +1343,9 @@ dt_s = 0.001
     /// deformation std it did not compute.
     #[test]
     fn likelihood_only_gives_the_same_likelihood() {
-        use crate::setup::Setup;
-        use crate::simulate::{Noise, Scenario, SimulateOptions, simulate};
-        let s = Setup::from_toml(SDOF_FRICTION, "t").unwrap();
-        let steps = 500;
-        let sim = simulate(
-            &s,
-            &SimulateOptions {
-                scenario: Scenario::Random { rms: 20.0 },
-                steps,
-                dt_s: s.dt_s,
-                substeps: 4,
-                noise: Noise::Additive(0.01),
-                seed: 5,
-            },
-        )
-        .unwrap();
-        let model = crate::model::Model::for_identification(&s).unwrap();
-        let params = s.initial_params();
-        let with_terms = model.with_connection_terms(&s, &params);
+        let (s, sim) = sdof_record(500, 0.01, 5);
         let run = |likelihood_only: bool| {
-            let inputs = EstimatorInputs {
-                model: &with_terms,
-                law: ConnectionLaw::new(&s, &params),
-                dt_s: s.dt_s,
-                substeps: 1,
-                newmark: s.newmark,
-                weighting: s.estimator.weighting,
-                channel_sigma: vec![1e-3; s.sensors.len()],
-                spectral_diagnostics: false,
-            };
-            let ko = KalmanOptions {
-                force_walk_std: 3.0,
-                model_error_std: 1e-3,
-                smooth: false,
-                semi_implicit: true,
-                likelihood_only,
-                horizon: Some(steps),
-            };
-            let mut est = KalmanEstimator::with_options(inputs, ko, 0).unwrap();
-            let mut out = StepOutput::new(1);
-            est.start(0, &sim.excitation[0]);
-            for i in 1..steps {
-                est.step(i as u64, &sim.excitation[i], &sim.response[i], &mut out)
-                    .unwrap();
-            }
+            let est = sdof_filter_run(&s, &sim, (1e-3, 3.0, 1e-3), likelihood_only);
             (
                 est.log_likelihood(),
                 est.diagnostics().clone(),

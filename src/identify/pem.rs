@@ -561,31 +561,16 @@ pub(super) fn refine_by_prediction_error<'a>(
         coarse_force_of(sub)
     };
     let near = |level: usize, coarse_force: f64| {
-        if one_search && level == sub {
-            tune_pem_force(
-                setup,
-                model,
-                tune_data,
-                sigma,
-                start,
-                level,
-                initial,
-                ForceSearch::Whole,
-            )
+        let search = if one_search && level == sub {
+            ForceSearch::Whole
         } else if tuned.iter().any(|t| t.0 == level) {
-            tune_pem_force(
-                setup,
-                model,
-                tune_data,
-                sigma,
-                start,
-                level,
-                initial,
-                ForceSearch::Near(coarse_force),
-            )
+            ForceSearch::Near(coarse_force)
         } else {
-            (coarse_force, f64::NEG_INFINITY)
-        }
+            return (coarse_force, f64::NEG_INFINITY);
+        };
+        tune_pem_force(
+            setup, model, tune_data, sigma, start, level, initial, search,
+        )
     };
     crate::par::phase("pem level choice", t0);
     let t0 = std::time::Instant::now();
