@@ -1464,11 +1464,11 @@ fn matrix_power(mut base: DMatrix<f64>, mut e: usize) -> DMatrix<f64> {
     let mut power = DMatrix::<f64>::identity(base.nrows(), base.ncols());
     while e > 0 {
         if e & 1 == 1 {
-            power = &power * &base;
+            power = product(&power, &base);
         }
         e >>= 1;
         if e > 0 {
-            base = &base * &base;
+            base = product(&base, &base);
         }
     }
     power
