@@ -2052,15 +2052,21 @@ mod tests {
         assert!((small[0] + 7.0 / 3.0).abs() < 1e-12 && (small[1] - 5.0 / 3.0).abs() < 1e-12);
     }
 
-    /// A forward-difference Jacobian (the first of two rounds, [`forward_differences`]) is
-    /// the secant over `[p, p + 2h]`, the central one's width, from the same base run (the
-    /// same innovations and cost); where the innovations are affine in a parameter (the
-    /// constant force, the friction level at a fixed switching pattern, nearly the damper)
-    /// the two agree to 1e-3 of the column's norm. The stiffness's column differs by a
-    /// quarter on this record (the innovations are curved in it at this width): why forward
-    /// differences are kept to the round whose end only places the next observer.
-    #[test]
-    fn forward_and_central_jacobians_agree() {
+    /// The shipped spring setup, its model, and a 300-sample record of random input
+    /// (2e4 N RMS per channel) at `params` with 5 % noise on every channel, and those noise
+    /// levels.
+    #[allow(clippy::type_complexity)]
+    fn spring_record(
+        params: impl Fn(&Basis) -> f64,
+        seed: u64,
+    ) -> (
+        Setup,
+        Model,
+        Vec<f64>,
+        Vec<Vec<f64>>,
+        Vec<Vec<f64>>,
+        Vec<f64>,
+    ) {
         let toml = std::fs::read_to_string(concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/recordings/two-beam-spring.toml"
@@ -2068,18 +2074,8 @@ mod tests {
         .unwrap();
         let setup = Setup::from_toml(&toml, "two-beam-spring.toml").unwrap();
         let model = Model::assemble(&setup).unwrap();
-        let basis = setup.param_basis();
-        let params: Vec<f64> = basis
-            .iter()
-            .map(|b| match b {
-                Basis::U => 3e5,
-                Basis::V => 20.0,
-                Basis::SignU => 500.0,
-                _ => 1.0,
-            })
-            .collect();
-        let scales: Vec<f64> = params.iter().map(|p| 1e-3 * p).collect();
-        let mut rng = ChaCha8Rng::seed_from_u64(12);
+        let params: Vec<f64> = setup.param_basis().iter().map(params).collect();
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let ne = model.Lp.ncols();
         let exc: Vec<Vec<f64>> = (0..300)
             .map(|_| {
@@ -2104,6 +2100,29 @@ mod tests {
             })
             .collect();
         let sigma: Vec<f64> = rms.iter().map(|r| 0.05 * r).collect();
+        (setup, model, params, exc, resp, sigma)
+    }
+
+    /// A forward-difference Jacobian (the first of two rounds, [`forward_differences`]) is
+    /// the secant over `[p, p + 2h]`, the central one's width, from the same base run (the
+    /// same innovations and cost); where the innovations are affine in a parameter (the
+    /// constant force, the friction level at a fixed switching pattern, nearly the damper)
+    /// the two agree to 1e-3 of the column's norm. The stiffness's column differs by a
+    /// quarter on this record (the innovations are curved in it at this width): why forward
+    /// differences are kept to the round whose end only places the next observer.
+    #[test]
+    fn forward_and_central_jacobians_agree() {
+        let (setup, model, params, exc, resp, sigma) = spring_record(
+            |b| match b {
+                Basis::U => 3e5,
+                Basis::V => 20.0,
+                Basis::SignU => 500.0,
+                _ => 1.0,
+            },
+            12,
+        );
+        let basis = setup.param_basis();
+        let scales: Vec<f64> = params.iter().map(|p| 1e-3 * p).collect();
         let pred = predictor(&setup, &model, &params, &sigma, 1, 100.0, resp.len()).unwrap();
         let make = |forward: bool| {
             jacobian(
@@ -2148,47 +2167,14 @@ mod tests {
     /// no larger than the raw one.
     #[test]
     fn concentrated_innovations_equal_a_run_from_the_refitted_start() {
-        let toml = std::fs::read_to_string(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/recordings/two-beam-spring.toml"
-        ))
-        .unwrap();
-        let setup = Setup::from_toml(&toml, "two-beam-spring.toml").unwrap();
-        let model = Model::assemble(&setup).unwrap();
-        let params: Vec<f64> = setup
-            .param_basis()
-            .iter()
-            .map(|b| match b {
+        let (setup, model, params, exc, resp, sigma) = spring_record(
+            |b| match b {
                 Basis::U => 3e5,
                 Basis::V => 20.0,
                 _ => 0.0,
-            })
-            .collect();
-        let mut rng = ChaCha8Rng::seed_from_u64(11);
-        let ne = model.Lp.ncols();
-        let exc: Vec<Vec<f64>> = (0..300)
-            .map(|_| {
-                (0..ne)
-                    .map(|_| 2e4 * rng.sample::<f64, _>(StandardNormal))
-                    .collect()
-            })
-            .collect();
-        let clean =
-            crate::simulate::response_to_excitation(&setup, &model, &params, &exc, setup.dt_s, 1)
-                .unwrap();
-        let m = model.stations.len();
-        let rms: Vec<f64> = (0..m)
-            .map(|k| (clean.iter().map(|y| y[k] * y[k]).sum::<f64>() / 300.0).sqrt())
-            .collect();
-        let resp: Vec<Vec<f64>> = clean
-            .iter()
-            .map(|y| {
-                (0..m)
-                    .map(|k| y[k] + 0.05 * rms[k] * rng.sample::<f64, _>(StandardNormal))
-                    .collect()
-            })
-            .collect();
-        let sigma: Vec<f64> = rms.iter().map(|r| 0.05 * r).collect();
+            },
+            11,
+        );
         let mut pred = predictor(&setup, &model, &params, &sigma, 1, 100.0, resp.len()).unwrap();
         let nz = 3 * model.n();
         let start: Vec<f64> = (0..nz)
