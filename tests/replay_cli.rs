@@ -765,6 +765,35 @@ fn coulomb_friction_on_eight_substep_data() {
     }
 }
 
+/// A record at rest whose residual-force stage is refused (100 % noise: the joint
+/// deformation undetermined) goes to the scan fallback, whose 200-sample prefix may prefer a
+/// model finer than the data's own discretisation by noise alone; the output error then
+/// takes the likeliest level from the setup's up, coarser ones included. Seed 7141
+/// (Coulomb, 8-sub-step data) was refused as "starts in motion" when only finer levels were
+/// tried (refined at 16 sub-steps, cost 2.2× the noise, which a start state half explained);
+/// now answered at 8 sub-steps, cost 0.99, within 2 errors (`sign(v)` −1.4, `u` −0.06).
+#[test]
+fn a_noisy_record_at_rest_is_not_taken_for_motion_by_a_too_fine_scan_level() {
+    let dir = tempfile::tempdir().unwrap();
+    let setup = dir.path().join("coulomb.toml");
+    let text = setup_variant_text(
+        "two-beam-friction.toml",
+        &["sign(v)", "u"],
+        &[3000.0, 3.0e5],
+        1,
+    );
+    std::fs::write(&setup, text).unwrap();
+    let extra = ["--steps", "2000", "--substeps", "8"];
+    let rec = simulate_with_noise(dir.path(), &setup, "7141", "additive:1.0", &extra);
+    let v = replay_json(&[rec.to_str().unwrap()]);
+    assert_within(&v, "7141", 2.0);
+    assert!(
+        says(&v, "output-error refinement with 8 model sub-steps"),
+        "{:#?}",
+        v["notes"]
+    );
+}
+
 /// `jointid simulate SETUP` (random input, 1 % noise, `seed`, `extra` options) into
 /// `dir/seed-SEED.mcap`.
 fn simulate_with(dir: &Path, setup: &Path, seed: &str, extra: &[&str]) -> std::path::PathBuf {

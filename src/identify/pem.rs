@@ -470,7 +470,9 @@ pub(super) fn refine_by_prediction_error<'a>(
     // stopping at the first doubling that does not help (as before) could stop short:
     // measured on the shipped case with 8-sub-step data, seed 6, it stayed at 1 sub-step
     // and the refinement fell back to the free-run output error (−6.4 %, 621 se).
-    let mut levels = vec![opts.substeps];
+    // From the setup's level even when the scan fallback refines at its prefix's likeliest
+    // (a finer one on a noisy prefix; see `identify::raise_substeps`).
+    let mut levels = vec![setup.substeps.min(opts.substeps)];
     while let Some(&last) = levels.last() {
         if last * 2 > MAX_PEM_LEVEL.max(opts.substeps) {
             break;
