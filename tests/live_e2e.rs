@@ -232,6 +232,11 @@ fn killed_publisher_is_reported_and_a_restarted_one_picked_up() {
     );
 }
 
+/// Session a's publisher is paced (the tests' 10 kHz, 3 s for its 30,000 samples), not as
+/// fast as possible: unpaced, on a machine whose two cores also ran two sweeps and a
+/// build, `live` fell behind and the input transport's buffer overflowed (27,895 of 30,000
+/// samples seen, counted as transport drops) — a loss this test does not measure. The
+/// viewer's buffer (8,192) fills at any pace.
 #[test]
 fn two_sessions_on_one_prefix_stay_apart_and_a_stalled_viewer_costs_no_input() {
     use jointid::io::shm::{FrameSubscriber, ShmOptions};
@@ -259,18 +264,9 @@ fn two_sessions_on_one_prefix_stay_apart_and_a_stalled_viewer_costs_no_input() {
         std::thread::sleep(Duration::from_millis(50));
     };
     assert_eq!(viewer.try_recv().unwrap(), None); // connect, then stop reading
-    let a = acquire(
-        &p,
-        &[
-            "--session",
-            "a",
-            "--samples",
-            "30000",
-            "--as-fast-as-possible",
-        ],
-    )
-    .spawn()
-    .unwrap();
+    let a = acquire(&p, &["--session", "a", "--samples", "30000"])
+        .spawn()
+        .unwrap();
     let b = acquire(&p, &["--session", "b", "--samples", "3000", "--seed", "4"])
         .spawn()
         .unwrap();
