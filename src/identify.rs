@@ -697,8 +697,42 @@ pub const RETUNE_WALK_DECADES: f64 = 3.0;
 
 /// Range of the common scale of the estimated noise levels the tuning admits (the noise
 /// levels from the data's differences can be too high, not by more than 10×, and too low by
-/// far on noise-free data, whose levels sit at their floor).
+/// far on noise-free data, whose levels sit at their floor). The scale is further bounded
+/// below so that no estimated channel's level falls under its floor
+/// ([`crate::estimate::tuning::NOISE_FLOOR_RELATIVE`] of the channel's RMS; see
+/// [`noise_scale_range`]).
 const NOISE_SCALE_RANGE: (f64, f64) = (1e-8, 1e1);
+
+/// [`NOISE_SCALE_RANGE`] for this record: its lower end raised so that the scaled level of
+/// every estimated channel stays at or above that channel's floor
+/// (`NOISE_FLOOR_RELATIVE` × its RMS), the level below which the filter's innovation
+/// covariance loses positive definiteness in round-off.
+///
+/// Why (thirty-first session): on noise-free data the levels sit at their floor and the
+/// tuning scaled them down further (the concentrated scale, ~0.1 and below); the pass's
+/// innovation covariance then had an eigenvalue of −5e-20 against a largest of 6e-3, its
+/// Cholesky factor failed, and the record was refused with "rank(S) = 0" (friction setup,
+/// noise-free own-discretisation data, 2,000 samples, seed 7207) where the 1989 estimator
+/// answers it exactly.
+fn noise_scale_range(sigma: &[f64], estimated: &[bool], data: &TestData) -> (f64, f64) {
+    let m = sigma.len();
+    let mut sum_sq = vec![0.0f64; m];
+    for y in &data.response {
+        for (a, v) in sum_sq.iter_mut().zip(y) {
+            *a += v * v;
+        }
+    }
+    let n = data.response.len().max(1) as f64;
+    let lowest = sigma
+        .iter()
+        .zip(estimated)
+        .zip(&sum_sq)
+        .filter(|((s, e), _)| **e && **s > 0.0)
+        .map(|((s, _), ss)| crate::estimate::tuning::NOISE_FLOOR_RELATIVE * (ss / n).sqrt() / s)
+        .filter(|x| x.is_finite())
+        .fold(NOISE_SCALE_RANGE.0, f64::max);
+    (lowest.min(NOISE_SCALE_RANGE.1), NOISE_SCALE_RANGE.1)
+}
 
 /// Range, in decades of the force scale, of the first tuning's search of the random-walk
 /// std per unit noise scale when the scale is concentrated out (a grid of one point per
@@ -781,6 +815,7 @@ pub fn tune_kalman(
         })
     };
     let tunes_scale = opts.tune_noise_scale && estimated.iter().any(|&e| e);
+    let (lo_scale, hi_scale) = noise_scale_range(sigma, estimated, data);
     // Every noise level free to scale (every channel's estimated, the model-error std the
     // small default): the common scale is concentrated out exactly (see
     // [`CONCENTRATED_WALK_DECADES`]) and one search of the walk's ratio to it remains.
@@ -831,7 +866,7 @@ pub fn tune_kalman(
         // give, and the coordinate search below runs. Measured (noise-free spring data,
         // `tests/import_and_plots.rs`): the re-tune's scale fell below 1e-8, and clamped
         // with the walk's ratio kept (1e9) the third pass diverged.
-        if ll.is_finite() && (NOISE_SCALE_RANGE.0..=NOISE_SCALE_RANGE.1).contains(&noise_scale) {
+        if ll.is_finite() && (lo_scale..=hi_scale).contains(&noise_scale) {
             return Ok(KalmanTuning {
                 model_error_std: model_error * noise_scale,
                 force_walk_std: ratio * noise_scale,
@@ -843,11 +878,20 @@ pub fn tune_kalman(
             });
         }
     }
-    let (lo_scale, hi_scale) = NOISE_SCALE_RANGE;
     // A search within a factor of 30 either way of a value already found (half-decade grid of
     // five points, then at most `refine` steps of Brent's method).
     let around = |x: f64, refine: usize, f: &(dyn Fn(f64) -> f64 + Sync)| {
         maximise_log(x / 30.0, x * 30.0, 5, refine, f)
+    };
+    // The same for the noise scale, within its range.
+    let around_scale = |x: f64, refine: usize, f: &(dyn Fn(f64) -> f64 + Sync)| {
+        maximise_log(
+            (x / 30.0).max(lo_scale),
+            (x * 30.0).min(hi_scale).max(lo_scale),
+            5,
+            refine,
+            f,
+        )
     };
     if let Some(prev) = previous {
         let mut noise_scale = prev.noise_scale;
@@ -864,7 +908,7 @@ pub fn tune_kalman(
         runs += n;
         let mut moved = false;
         if tunes_scale {
-            let (s, l, n) = around(noise_scale, 8, &|s| likelihood(s, walk, model_error));
+            let (s, l, n) = around_scale(noise_scale, 8, &|s| likelihood(s, walk, model_error));
             runs += n;
             if l > ll {
                 moved |= l > ll + RETUNE_SIGNIFICANT_GAIN;
@@ -928,7 +972,7 @@ pub fn tune_kalman(
             model_error_taken = true;
             ll = l;
             if tunes_scale {
-                let (s, l, n) = around(noise_scale, 8, &|s| likelihood(s, walk, model_error));
+                let (s, l, n) = around_scale(noise_scale, 8, &|s| likelihood(s, walk, model_error));
                 runs += n;
                 if l > ll {
                     noise_scale = s;
@@ -1767,8 +1811,10 @@ fn run_passes(
 }
 
 /// A pass whose model broke while it ran with the last pass's own answer — it diverged,
-/// its integrator could not step, or its stations no longer saw the residual force
-/// (rank(S) = 0; the same stations did in pass 1) — fails because of that answer, so that
+/// its integrator could not step, its stations no longer saw the residual force
+/// (rank(S) = 0; the same stations did in pass 1), or its filter's innovation covariance
+/// was no longer positive definite (until the thirty-first session reported as rank(S) =
+/// 0) — fails because of that answer, so that
 /// answer is not one: it is taken off the passes (and returned as a note), and the
 /// identification goes on from the pass before it (its parameters, track and start state).
 /// Why: on noise-free Coulomb data of the model's own discretisation (test
@@ -1791,6 +1837,7 @@ fn discard_pass_that_diverged(
             EstimateError::Diverged { .. }
                 | EstimateError::Overflowed { .. }
                 | EstimateError::RankDeficientSensitivity { .. }
+                | EstimateError::InnovationCovariance { .. }
                 | EstimateError::Integrate(_)
         )
     );
@@ -3205,6 +3252,13 @@ mod tests {
                     needed: 1,
                     stations: 12,
                     condition: f64::INFINITY,
+                }),
+                true,
+            ),
+            (
+                IdentifyError::Estimate(EstimateError::InnovationCovariance {
+                    channels: 12,
+                    smallest_noise_std: 1e-12,
                 }),
                 true,
             ),

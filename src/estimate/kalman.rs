@@ -209,11 +209,13 @@ impl KalmanEstimator {
         let chol = S
             .clone()
             .cholesky()
-            .ok_or(EstimateError::RankDeficientSensitivity {
-                rank: 0,
-                needed: q,
-                stations: m,
-                condition: f64::INFINITY,
+            .ok_or(EstimateError::InnovationCovariance {
+                channels: m,
+                smallest_noise_std: inp
+                    .channel_sigma
+                    .iter()
+                    .copied()
+                    .fold(f64::INFINITY, f64::min),
             })?;
         let innov_inv = chol.inverse();
         let log_det = 2.0 * chol.l().diagonal().iter().map(|x| x.ln()).sum::<f64>();
