@@ -3164,6 +3164,39 @@ mod tests {
         Setup::from_file(&path).expect("the shipped setup loads")
     }
 
+    /// The noise scale's range: an estimated channel at its floor (noise-free data) keeps
+    /// the scale at or above 1, a channel at 1 % noise bounds it at 1e-5 (far below the
+    /// scales the tuning takes), and a channel whose level was given (not estimated) does
+    /// not bound it.
+    #[test]
+    fn the_noise_scale_keeps_estimated_channels_at_or_above_their_floor() {
+        let data = TestData {
+            samples: vec![0, 1],
+            t_ns: vec![0, 1],
+            excitation: vec![vec![0.0], vec![0.0]],
+            response: vec![vec![2.0, 4.0], vec![-2.0, -4.0]],
+        };
+        let floor = crate::estimate::tuning::NOISE_FLOOR_RELATIVE;
+        // Channel RMS 2 and 4: floors 2e-7 and 4e-7.
+        let at_floor = [2.0 * floor, 4.0 * floor];
+        let (lo, hi) = noise_scale_range(&at_floor, &[true, true], &data);
+        assert!(
+            (lo - 1.0).abs() < 1e-12 && hi == NOISE_SCALE_RANGE.1,
+            "{lo} {hi}"
+        );
+        let (lo, hi) = noise_scale_range(&[0.02, 0.04], &[true, true], &data);
+        assert!(
+            (lo - 1e-5).abs() < 1e-18 && hi == NOISE_SCALE_RANGE.1,
+            "{lo} {hi}"
+        );
+        // Far above every floor: the range's own lower end.
+        let (lo, _) = noise_scale_range(&[1e3, 1e3], &[true, true], &data);
+        assert_eq!(lo, NOISE_SCALE_RANGE.0);
+        // Channel 0 given at the floor: only channel 1 (at 1e3 × its floor) bounds it.
+        let (lo, _) = noise_scale_range(&[2.0 * floor, 4e3 * floor], &[false, true], &data);
+        assert!((lo - 1e-3).abs() < 1e-15, "{lo}");
+    }
+
     /// A record whose first sample reads `ratio` noise std on every displacement and
     /// velocity channel (1 on the rest), all noise levels 1.
     fn first_sample_at(setup: &Setup, ratio: f64) -> (TestData, Vec<f64>) {
