@@ -768,8 +768,9 @@ const RETUNE_SIGNIFICANT_GAIN: f64 = 1.92;
 ///
 /// Otherwise (a channel's noise level given, or the model-error std tuned): σ_R over a log
 /// grid of 1e-6…1e2 × the force scale with Brent's method
-/// ([`crate::estimate::tuning::maximise_log`]), then the noise scale over 1e-8…1e1, then σ_R
-/// again around the new optimum.
+/// ([`crate::estimate::tuning::maximise_log`]), then the noise scale over the record's
+/// range ([`noise_scale_range`]: 1e-8…1e1, its lower end raised to keep every estimated
+/// channel at or above its floor), then σ_R again around the new optimum.
 ///
 /// `previous`: a tuning made at earlier parameters of the same record (the passes re-tune at
 /// each pass's answer until they settle). The search then starts from it: σ_R over
@@ -894,7 +895,8 @@ pub fn tune_kalman(
         )
     };
     if let Some(prev) = previous {
-        let mut noise_scale = prev.noise_scale;
+        // (A tuning made on a long record's prefix has that prefix's range.)
+        let mut noise_scale = prev.noise_scale.clamp(lo_scale, hi_scale);
         let error_taken = opts.model_error_std.is_none() && prev.model_error_taken;
         if error_taken {
             model_error = prev.model_error_std;
@@ -940,7 +942,7 @@ pub fn tune_kalman(
             model_error_taken: error_taken,
         });
     }
-    let mut noise_scale = 1.0;
+    let mut noise_scale = 1.0f64.clamp(lo_scale, hi_scale);
     let mut model_error_taken = false;
     let (mut walk, mut ll, n) = maximise_log(1e-6 * scale, 1e2 * scale, 9, 12, &|w| {
         likelihood(noise_scale, w, model_error)
@@ -2080,7 +2082,7 @@ fn finish_with_output_error(
                         ));
                     }
                 }
-                if raised > opts.substeps {
+                if raised != opts.substeps {
                     result.notes.push(format!(
                         "prediction-error refinement with {raised} model sub-steps per sample instead of {}: the likeliest level of the tuned innovation likelihood at the start values (every doubling up to 64 tried; the coarsest within 3 standard deviations of the best kept, on a long record checked again on the whole of it)",
                         opts.substeps
@@ -2490,8 +2492,10 @@ const MAX_RAISED_LEVEL: usize = 64;
 /// sub-steps; on an undamped structure the mismatch accumulates and, at high noise, moves
 /// the output-error cost's global minimum to a wrong stiffness (measured: 16 model sub-steps
 /// on 64-sub-step data, 100 % noise, seed 2: +27 %, cost 1.14 against 0.97 at the truth
-/// with 64). So after the refinement: the cost at the minima found is evaluated at every
-/// doubling of the sub-steps up to [`MAX_RAISED_LEVEL`] (or 8× the setup's) and
+/// with 64). So after the refinement: the cost at the minima found is evaluated at the
+/// setup's level and every doubling of it (except the level refined at, coarser ones
+/// included when the scan fallback refined at a finer one) up to [`MAX_RAISED_LEVEL`] (or
+/// 8× the setup's) and
 /// [`MAX_RAISED_STEPS`]; when the likeliest level lowers it significantly (by more than 3
 /// standard deviations of a χ², `3√(2Nm)`), the refinement is redone at the coarsest level
 /// within that of it.
@@ -2531,8 +2535,8 @@ fn raise_substeps(
     // taken was tried and did not help (the sub-steps have converged).
     let mut coarser: Option<Vec<f64>> = None;
     let mut settled = false;
-    // Every level from one doubling of the setup's up to [`MAX_RAISED_LEVEL`] (or 8× the
-    // setup's) within the step budget is tried at every minimum found (at a wrong stiffness
+    // Every level from the setup's (but the one refined at) up to [`MAX_RAISED_LEVEL`] (or
+    // 8× the setup's) within the step budget is tried at every minimum found (at a wrong stiffness
     // finer steps do not help), and the coarsest level within `significant` of the lowest
     // cost is taken. Doubling only while a doubling helped (as before) stopped short: the
     // cost is not monotone in the sub-steps (a Newmark model resonates with the data's own
@@ -2629,7 +2633,7 @@ fn raise_substeps(
                 // (measured on the shipped friction recording: 2 sub-steps ended at 42.6× the
                 // noise where 1 sub-step ended at 25×).
                 notes.push(format!(
-                    "output-error refinement with {level} model sub-steps per sample instead of {sub}: the likeliest of the levels tried up to {} {} (normalised cost {current:.4} → {after:.4}, Δχ² = {:.0}, threshold {:.0}); the passes ran with {}",
+                    "output-error refinement with {level} model sub-steps per sample instead of {sub}: the likeliest of the levels tried up to {} {} (normalised cost {current:.4} → {after:.4}, Δχ² = {:.0}, threshold {:.0}); the passes (or the scan) ran with {}",
                     levels.last().map_or(sub, |x| x.0),
                     if linear {
                         "(the law is linear: refined afresh at each level)"
@@ -3289,10 +3293,7 @@ mod tests {
                 true,
             ),
             (
-                IdentifyError::Estimate(EstimateError::InnovationCovariance {
-                    channels: 12,
-                    smallest_noise_std: 1e-12,
-                }),
+                IdentifyError::Estimate(EstimateError::InnovationCovariance { channels: 12 }),
                 true,
             ),
             (

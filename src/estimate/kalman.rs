@@ -209,14 +209,7 @@ impl KalmanEstimator {
         let chol = S
             .clone()
             .cholesky()
-            .ok_or(EstimateError::InnovationCovariance {
-                channels: m,
-                smallest_noise_std: inp
-                    .channel_sigma
-                    .iter()
-                    .copied()
-                    .fold(f64::INFINITY, f64::min),
-            })?;
+            .ok_or(EstimateError::InnovationCovariance { channels: m })?;
         let innov_inv = chol.inverse();
         let log_det = 2.0 * chol.l().diagonal().iter().map(|x| x.ln()).sum::<f64>();
         let gain = &P * H.transpose() * &innov_inv;

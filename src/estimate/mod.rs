@@ -36,12 +36,9 @@ pub enum EstimateError {
         condition: f64,
     },
     #[error(
-        "the Kalman filter's innovation covariance (H P Hᵀ + V over {channels} channels) is not positive definite in floating point: the channels' noise levels ({smallest_noise_std:.3e} the smallest, in its channel's unit) are too small against the round-off of the model's predictions; give `noise_std` values near the sensors' real noise, or use `--estimator paper` on noise-free data of the model's own discretisation"
+        "the Kalman filter's innovation covariance (H P Hᵀ + V over {channels} channels) is not positive definite in floating point: either the channels' noise levels are too small against the round-off of the model's predictions (noise-free data: give `noise_std` values near the sensors' real noise, or use `--estimator paper` on data of the model's own discretisation), or the parameters the filter ran with make the model blow up"
     )]
-    InnovationCovariance {
-        channels: usize,
-        smallest_noise_std: f64,
-    },
+    InnovationCovariance { channels: usize },
     #[error("the estimate diverged at sample {sample}: the model state is no longer finite")]
     Diverged { sample: u64 },
     #[error(

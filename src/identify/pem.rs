@@ -493,7 +493,8 @@ pub(super) fn refine_by_prediction_error<'a>(
         )
     };
     let t0 = std::time::Instant::now();
-    // The observer force is tuned at the setup's level, and every other level's likelihood
+    // The observer force is tuned at the level the stage was given (the setup's, or the
+    // scan fallback's), and every other level's likelihood
     // taken with that observer (in parallel, finest first: the longest); the chosen level's
     // force is tuned afterwards. (level, its coarse force if tuned, log-likelihood)
     // When the setup's level fails at every force (its likelihood is not finite), its

@@ -1039,7 +1039,8 @@ pub(super) fn identify_from_scan(
     }
     if !accel {
         result.notes.push(format!(
-            "the residual-force stage was refused ({refused_note}); the output-error stage started from a scan of the stiffness and friction levels on the first {len} samples ({sub} model sub-steps) and its answer is reported"
+            "the residual-force stage was refused ({refused_note}); the output-error stage started from a scan of the stiffness and friction levels on the first {len} samples ({} model sub-steps) and its answer is reported",
+            opts.substeps
         ));
     }
     if (accel && estimated.iter().any(|&e| e)) || has_sign_basis(setup) {
