@@ -82,7 +82,7 @@ pub enum IdentifyError {
     TooShort(usize),
     /// The record does not start at rest, which the Kalman and paper pipelines assume.
     #[error(
-        "the record does not start at rest: at its first sample (sample {sample}) the {channels} displacement and velocity channels read Σ(value/noise std)² = {chi2:.1} (limit {chi2_limit:.1}, a false alarm on a record at rest has probability 2e-9), the largest sensor `{sensor}` {value:.4e}, {ratio:.1}× its noise std {sigma:.3e} (limit {} for one channel); this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a `sign(u)` term), and on records cut from a test in motion such a start was up to millions of standard errors off (ACCURACY.md, \"Records that start in motion\"); start the record before the excitation, remove a static offset from a displacement channel, identify with `--no-refine` (the Kalman passes estimate the initial state) or, for a law linear in the state, with `--estimator ml`",
+        "the record does not start at rest: at its first sample (sample {sample}) the {channels} displacement and velocity channels read Σ(value/noise std)² = {chi2:.1} (limit {chi2_limit:.1}, a false alarm on a record at rest has probability 2e-9), the largest sensor `{sensor}` {value:.4e}, {ratio:.1}× its noise std {sigma:.3e} (limit {} for one channel); this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a friction (`sign`) term), and on records cut from a test in motion such a start was up to millions of standard errors off (ACCURACY.md, \"Records that start in motion\"); start the record before the excitation, remove a static offset from a displacement channel, identify with `--no-refine` (the Kalman passes estimate the initial state) or, for a law linear in the state, with `--estimator ml`",
         MAX_START_NOISE_RATIO
     )]
     NotAtRest {
@@ -98,12 +98,12 @@ pub enum IdentifyError {
     },
     /// A window cut from a longer record: in motion whatever its first sample reads.
     #[error(
-        "the window starts mid-record (sample {sample}), in motion, and this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a `sign(u)` term; with accelerometers only a start in motion cannot even be seen in the data); identify the whole record, or windows with `--no-refine` or `[estimator] output_error = false` (the Kalman passes estimate the initial state) or, for a law linear in the state, with `--estimator ml`"
+        "the window starts mid-record (sample {sample}), in motion, and this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a friction (`sign`) term; with accelerometers only a start in motion cannot even be seen in the data); identify the whole record, or windows with `--no-refine` or `[estimator] output_error = false` (the Kalman passes estimate the initial state) or, for a law linear in the state, with `--estimator ml`"
     )]
     MidRecord { sample: u64 },
     /// A start in motion seen by the whole record's innovations, not by its first sample.
     #[error(
-        "the record starts in motion although its first sample reads like rest: a start state refitted to an observer's innovations at the answer ({substeps} model sub-steps) removes {reduction:.1} from their whitened cost, beyond the limit {limit:.1}; this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a `sign(u)` term), and no option makes it start elsewhere when the first sample reads like rest (`--no-refine` would run the passes from rest too); record from rest (start the acquisition before the excitation) or cut the record where the structure is at rest, or, for a law linear in the state, identify with `--estimator ml` (it estimates the initial state)"
+        "the record starts in motion although its first sample reads like rest: a start state refitted to an observer's innovations at the answer ({substeps} model sub-steps) removes {reduction:.1} from their whitened cost, beyond the limit {limit:.1}; this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a friction (`sign`) term), and no option makes it start elsewhere when the first sample reads like rest (`--no-refine` would run the passes from rest too); record from rest (start the acquisition before the excitation) or cut the record where the structure is at rest, or, for a law linear in the state, identify with `--estimator ml` (it estimates the initial state)"
     )]
     MotionInRecord {
         reduction: f64,
@@ -111,6 +111,17 @@ pub enum IdentifyError {
         rank: usize,
         level: f64,
         substeps: usize,
+    },
+    /// A start in motion seen by the whole record's innovations, identified again with the
+    /// start state estimated (a friction law: by prediction error), and refused there.
+    #[error(
+        "the record starts in motion although its first sample reads like rest (a start state refitted to an observer's innovations at the answer, {substeps} model sub-steps, removes {reduction:.1} from their whitened cost, beyond the limit {limit:.1}; the free run starts at rest) and, identified again with its start state estimated, it was refused ({then}); record from rest (start the acquisition before the excitation) or cut the record where the structure is at rest"
+    )]
+    MotionInRecordRefused {
+        reduction: f64,
+        limit: f64,
+        substeps: usize,
+        then: Box<IdentifyError>,
     },
     #[error(
         "{context}: the output-error stage started from a scan did not settle — its probes kept finding lower costs and moved `{parameter}` by {moved:.1} of the stated standard errors (limit {}; up to {} restarts from the probe's end tried); refused rather than reported with errors that would not hold",
@@ -191,6 +202,10 @@ pub struct IdentifyOptions {
     pub stick_band: f64,
     /// Substeps of the identification model per sample.
     pub substeps: usize,
+    /// Coarsest model sub-steps the refinement's level choices consider (the setup's; the
+    /// scan fallback refines at the level its prefix preferred, and the choices still go
+    /// down to this one — except for accelerometer-only layouts, see `scan.rs`).
+    pub coarsest_substeps: usize,
     /// Random-walk std of the residual force per sample for the Kalman estimator, N. `None`:
     /// tuned per pass by maximising the innovation likelihood (see `tune_kalman`).
     pub force_walk_std: Option<f64>,
@@ -285,6 +300,7 @@ impl IdentifyOptions {
             max_condition: e.max_condition,
             stick_band: 1e-6,
             substeps: setup.substeps,
+            coarsest_substeps: setup.substeps,
             force_walk_std: e.force_walk_std,
             tune_noise_scale: true,
             tune_samples: TUNE_SAMPLES,
@@ -1266,13 +1282,24 @@ pub fn identify(
                 start_motion: Some(m),
                 ..opts.clone()
             };
-            identify_once(setup, data, &again, truth, on_pass, on_sample)?
+            identify_once(setup, data, &again, truth, on_pass, on_sample).map_err(|e| {
+                IdentifyError::MotionInRecordRefused {
+                    reduction: m.reduction,
+                    limit: m.limit,
+                    substeps: m.substeps,
+                    then: Box::new(e),
+                }
+            })?
         }
         _ => first,
     };
     // `--bootstrap` belongs to the prediction-error refinement of `sign(u)` laws: said
     // rather than ignored without a word.
-    if !has_sign_u_basis(setup) && opts.bootstrap.is_some_and(|n| n > 0) {
+    let by_prediction_error = result
+        .output_error
+        .as_ref()
+        .is_some_and(|o| o.prediction_error.is_some());
+    if !has_sign_u_basis(setup) && !by_prediction_error && opts.bootstrap.is_some_and(|n| n > 0) {
         result.notes.push(
             "`--bootstrap` not run: the parametric bootstrap belongs to the prediction-error refinement of `sign(u)` laws; this law's errors are its estimator's own (maximum likelihood's, or the free-run output error's scaled bound, widened for a misfit or a rough cost)".into(),
         );
@@ -1356,11 +1383,12 @@ fn identify_once(
     }
     if let Err(refusal) = motion {
         // The Kalman passes estimate the initial state, and so does the prediction-error
-        // refinement that follows them for `sign(u)` laws; the free-run output error and
-        // the 1989 estimator start at rest.
+        // refinement that follows them for friction laws on a record in motion (see
+        // `finish_with_output_error`); the free-run output error and the 1989 estimator
+        // start at rest.
         let handled = opts.estimator == EstimatorKind::Kalman
             && model.has_dense()
-            && (has_sign_u_basis(setup) || !opts.output_error);
+            && (has_sign_basis(setup) || !opts.output_error);
         if !handled {
             return Err(refusal);
         }
@@ -2004,8 +2032,20 @@ fn finish_with_output_error(
     };
     let mut scales = start_scales(&values, &errors);
     let (exc, resp) = (&data.excitation, &data.response);
-    let sign_u = has_sign_u_basis(setup);
-    if opts.output_error && sign_u {
+    // The prediction error gives the answer for laws with a `sign(u)` term, and for any
+    // friction law on a record that starts in motion: it starts from the estimated initial
+    // state, the free-run output error from rest. Why the latter (thirty-first session):
+    // Coulomb `sign(v), u` records cut from a test in motion were refused until then
+    // (ACCURACY.md, twenty-sixth session); refined by prediction error with the start state
+    // fitted they are answered (ACCURACY.md, thirty-first session).
+    let by_prediction_error =
+        has_sign_u_basis(setup) || (opts.initial_state.is_some() && has_sign_basis(setup));
+    let friction_term = if has_sign_u_basis(setup) {
+        "sign(u)"
+    } else {
+        "sign(v)"
+    };
+    if opts.output_error && by_prediction_error {
         let t0 = std::time::Instant::now();
         let first_scales = first_answer.as_ref().map(|(v, e)| start_scales(v, e));
         let other_start = first_answer
@@ -2152,7 +2192,12 @@ fn finish_with_output_error(
                     }
                 }
                 result.notes.push(format!(
-                    "`sign(u)` friction: refined by prediction error (the output-error cost of this chaotic law is rough and its descent stops in local minima): observer process-noise force {:.4e} N per sample at the connections (tuned by the innovation likelihood of the start values), closed-loop spectral radius {:.6}, normalised innovation cost {:.4} → {:.4}; standard errors by the Newey–West sandwich, the larger of its values over secants of ±1 and ±8 errors (lag {} samples; stated/naive {})",
+                    "`{friction_term}` friction: refined by prediction error (the output-error cost of this chaotic law is rough and its descent stops in local minima{}): observer process-noise force {:.4e} N per sample at the connections (tuned by the innovation likelihood of the start values), closed-loop spectral radius {:.6}, normalised innovation cost {:.4} → {:.4}; standard errors by the Newey–West sandwich, the larger of its values over secants of ±1 and ±8 errors (lag {} samples; stated/naive {})",
+                    if has_sign_u_basis(setup) {
+                        ""
+                    } else {
+                        "; this record starts in motion, and the free run starts at rest"
+                    },
                     rep.force_std,
                     rep.spectral_radius,
                     rep.cost_start,
@@ -2293,7 +2338,7 @@ fn finish_with_output_error(
                         last.parameters[scan.parameter].basis
                     ));
                 }
-                if sign_u && r.report.accepted && !r.report.rough {
+                if has_sign_u_basis(setup) && r.report.accepted && !r.report.rough {
                     result.notes.push(
                         "`sign(u)` friction: its output-error cost has local minima beyond the reach of the probe (8 standard errors); on continuous data at 10 % noise the spread over seeds was measured 57× the stated standard error (ACCURACY.md, \"Friction on continuous data\"): treat these standard errors as lower limits".into(),
                     );
@@ -2336,7 +2381,7 @@ fn finish_with_output_error(
                 let observations = (data.len() * sigma.len()).max(1) as f64;
                 if r.report.accepted
                     && r.report.cost_end > ANSWER_MISFIT_COST
-                    && !sign_u
+                    && !by_prediction_error
                     && opts.start_motion.is_none()
                     && opts.starts_mid_record.is_none()
                     && model.has_dense()
@@ -2561,7 +2606,7 @@ fn raise_substeps(
     // 8-sub-step Newmark data's period error carried through an undamped structure), and
     // the start-motion test took that misfit for motion and refused a record at rest. With
     // 8 among the levels: cost 0.99, `sign(v)` −1.4 and `u` −0.06 errors.
-    let mut l = setup.substeps.min(opts.substeps);
+    let mut l = opts.coarsest_substeps.min(opts.substeps);
     // A linear law is refined afresh at every level (its runs are cheap): its coarse minimum
     // can sit where the finer models cost more. Measured (spring `u, v`, Kalman pipeline, 1
     // model sub-step, 64-sub-step data, 1 % noise, seed 22): every level's cost at the

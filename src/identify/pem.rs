@@ -472,7 +472,7 @@ pub(super) fn refine_by_prediction_error<'a>(
     // and the refinement fell back to the free-run output error (−6.4 %, 621 se).
     // From the setup's level even when the scan fallback refines at its prefix's likeliest
     // (a finer one on a noisy prefix; see `identify::raise_substeps`).
-    let mut levels = vec![setup.substeps.min(opts.substeps)];
+    let mut levels = vec![opts.coarsest_substeps.min(opts.substeps)];
     while let Some(&last) = levels.last() {
         if last * 2 > MAX_PEM_LEVEL.max(opts.substeps) {
             break;

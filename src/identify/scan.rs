@@ -832,6 +832,16 @@ pub(super) fn identify_from_scan(
     }
     let mut opts = opts.clone();
     opts.substeps = sub;
+    // Accelerations only: the refinement's level choices keep to the scan's level and finer
+    // ones (the records are dominated by the highest modes, where a coarser level moved the
+    // answer: the history above, and seed 3 of
+    // `tests/accelerometers.rs::accelerometers_only_friction_at_full_noise_far_rescan_and_settling`,
+    // which ended −46 % from 64 sub-steps where the scan's 128 and the whole-record rescan
+    // find the truth's valley). After a refused residual-force stage (displacement or
+    // velocity channels) they go down to the setup's (`IdentifyOptions::coarsest_substeps`).
+    if accel {
+        opts.coarsest_substeps = sub;
+    }
     let opts = &opts;
     // The scan's step (16 %) as the scale of the start: a refinement that does not settle
     // is taken only within 3 of these (`finish_with_output_error`).
