@@ -1282,13 +1282,15 @@ pub fn identify(
                 start_motion: Some(m),
                 ..opts.clone()
             };
-            identify_once(setup, data, &again, truth, on_pass, on_sample).map_err(|e| {
-                IdentifyError::MotionInRecordRefused {
+            identify_once(setup, data, &again, truth, on_pass, on_sample).map_err(|e| match e {
+                // A law the run again cannot handle in motion: that refusal alone.
+                IdentifyError::MotionInRecord { .. } => e,
+                e => IdentifyError::MotionInRecordRefused {
                     reduction: m.reduction,
                     limit: m.limit,
                     substeps: m.substeps,
                     then: Box::new(e),
-                }
+                },
             })?
         }
         _ => first,
