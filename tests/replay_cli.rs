@@ -604,14 +604,7 @@ fn own_discretisation_friction_at_ten_percent_noise_states_honest_errors() {
 #[test]
 fn own_discretisation_coulomb_at_ten_percent_noise_states_honest_errors() {
     let dir = tempfile::tempdir().unwrap();
-    let text = setup_variant_text(
-        "two-beam-friction.toml",
-        &["sign(v)", "u"],
-        &[3000.0, 3.0e5],
-        1,
-    );
-    let setup = dir.path().join("coulomb.toml");
-    std::fs::write(&setup, &text).unwrap();
+    let setup = coulomb_setup(dir.path());
     let rec = simulate_with_noise(dir.path(), &setup, "29", "additive:0.1", &[]);
     let v = replay_json(&[rec.to_str().unwrap(), "--setup", setup.to_str().unwrap()]);
     assert_within(&v, "29", 4.0);
@@ -761,14 +754,7 @@ fn a_friction_the_innovations_cannot_tell_from_zero_stands_with_wide_intervals()
 #[test]
 fn coulomb_friction_on_eight_substep_data() {
     let dir = tempfile::tempdir().unwrap();
-    let setup = dir.path().join("coulomb.toml");
-    let text = setup_variant_text(
-        "two-beam-friction.toml",
-        &["sign(v)", "u"],
-        &[3000.0, 3.0e5],
-        1,
-    );
-    std::fs::write(&setup, text).unwrap();
+    let setup = coulomb_setup(dir.path());
     for seed in ["5", "6"] {
         let extra = ["--steps", "2000", "--substeps", "8"];
         let v = simulate_and_replay_within(dir.path(), &setup, seed, &extra, 3.0);
@@ -793,14 +779,7 @@ fn coulomb_friction_on_eight_substep_data() {
 #[test]
 fn a_noisy_record_at_rest_is_not_taken_for_motion_by_a_too_fine_scan_level() {
     let dir = tempfile::tempdir().unwrap();
-    let setup = dir.path().join("coulomb.toml");
-    let text = setup_variant_text(
-        "two-beam-friction.toml",
-        &["sign(v)", "u"],
-        &[3000.0, 3.0e5],
-        1,
-    );
-    std::fs::write(&setup, text).unwrap();
+    let setup = coulomb_setup(dir.path());
     let extra = ["--steps", "2000", "--substeps", "8"];
     let rec = simulate_with_noise(dir.path(), &setup, "7141", "additive:1.0", &extra);
     let v = replay_json(&[rec.to_str().unwrap()]);
@@ -810,6 +789,20 @@ fn a_noisy_record_at_rest_is_not_taken_for_motion_by_a_too_fine_scan_level() {
         "{:#?}",
         v["notes"]
     );
+}
+
+/// `dir/coulomb.toml`: the shipped friction setup (1 model sub-step) with Coulomb friction
+/// and a spring, `sign(v), u` (truth 3,000 N and 3e5 N/m).
+fn coulomb_setup(dir: &Path) -> std::path::PathBuf {
+    let setup = dir.join("coulomb.toml");
+    let text = setup_variant_text(
+        "two-beam-friction.toml",
+        &["sign(v)", "u"],
+        &[3000.0, 3.0e5],
+        1,
+    );
+    std::fs::write(&setup, text).unwrap();
+    setup
 }
 
 /// `jointid simulate SETUP` (random input, 1 % noise, `seed`, `extra` options) into
