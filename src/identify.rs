@@ -744,7 +744,7 @@ fn noise_scale_range(sigma: &[f64], estimated: &[bool], data: &TestData) -> (f64
         .zip(estimated)
         .zip(&sum_sq)
         .filter(|((s, e), _)| **e && **s > 0.0)
-        .map(|((s, _), ss)| crate::estimate::tuning::NOISE_FLOOR_RELATIVE * (ss / n).sqrt() / s)
+        .map(|((s, _), ss)| crate::estimate::tuning::noise_floor((ss / n).sqrt()) / s)
         .filter(|x| x.is_finite())
         .fold(NOISE_SCALE_RANGE.0, f64::max);
     (lowest.min(NOISE_SCALE_RANGE.1), NOISE_SCALE_RANGE.1)
@@ -2583,8 +2583,8 @@ fn raise_substeps(
     let mut coarser: Option<Vec<f64>> = None;
     let mut settled = false;
     // Every level from the setup's (but the one refined at) up to [`MAX_RAISED_LEVEL`] (or
-    // 8× the setup's) within the step budget is tried at every minimum found (at a wrong stiffness
-    // finer steps do not help), and the coarsest level within `significant` of the lowest
+    // 8× the setup's) within the step budget is tried at every minimum found (at a wrong
+    // stiffness finer steps do not help), and the coarsest level within `significant` of the lowest
     // cost is taken. Doubling only while a doubling helped (as before) stopped short: the
     // cost is not monotone in the sub-steps (a Newmark model resonates with the data's own
     // scheme); the same change in the prediction-error refinement took the friction sweep on
@@ -2600,8 +2600,9 @@ fn raise_substeps(
     let current = points.iter().map(|p| p.1).fold(f64::INFINITY, f64::min);
     let cap = MAX_RAISED_LEVEL.max(8 * opts.substeps);
     let mut levels: Vec<(usize, f64)> = Vec::new();
-    // From the setup's level, not only finer ones: the scan fallback refines at the level
-    // of its prefix's lowest cost, which on a noisy prefix can be finer than the data's own.
+    // From `coarsest_substeps` (the setup's level), not only finer ones: the scan fallback
+    // refines at the level of its prefix's lowest cost, which on a noisy prefix can be
+    // finer than the data's own (accelerometer-only scans keep theirs, see `scan.rs`).
     // Measured (Coulomb `sign(v), u`, 8-sub-step data, 100 % noise, seed 7141): the scan's
     // 200 samples put 16 sub-steps 0.0007 below 8 in normalised cost; refined at 16 and
     // raised only to finer levels, the answer misfit the record by 2.2× the noise (the

@@ -62,16 +62,24 @@ pub const MAX_DIFFERENCE_ORDER: usize = 6;
 /// definiteness in round-off — measured on the two-beam problem at 1e-9.)
 pub const NOISE_FLOOR_RELATIVE: f64 = 1e-7;
 
+/// The floor of a channel's noise std: `NOISE_FLOOR_RELATIVE` × its RMS (at least the
+/// smallest positive number, so it is always usable as a weight; 1 when the RMS is not
+/// finite). Also the least level the Kalman tuning may scale an estimated channel to
+/// (`identify::noise_scale_range`).
+pub fn noise_floor(rms: f64) -> f64 {
+    if rms.is_finite() {
+        (NOISE_FLOOR_RELATIVE * rms).max(f64::MIN_POSITIVE)
+    } else {
+        1.0
+    }
+}
+
 /// Noise std of one channel: the smallest difference estimate over orders
 /// `1..=MAX_DIFFERENCE_ORDER`, floored at `NOISE_FLOOR_RELATIVE × RMS` (and at the smallest
 /// positive number, so it is always usable as a weight).
 pub fn channel_noise_std(y: &[f64]) -> f64 {
     let rms = (y.iter().map(|v| v * v).sum::<f64>() / y.len().max(1) as f64).sqrt();
-    let floor = if rms.is_finite() {
-        (NOISE_FLOOR_RELATIVE * rms).max(f64::MIN_POSITIVE)
-    } else {
-        1.0
-    };
+    let floor = noise_floor(rms);
     (1..=MAX_DIFFERENCE_ORDER)
         .filter_map(|k| difference_noise_std(y, k))
         .fold(f64::INFINITY, f64::min)
