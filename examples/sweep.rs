@@ -42,15 +42,19 @@ fn main() -> anyhow::Result<()> {
         "setup {path}, estimator {kind}, {seeds} seeds, {steps} samples (first {skip} dropped), random excitation RMS {rms} N"
     );
     println!(
-        "| data sub-steps | noise | answered | failed | coverage 95 % | max abs(err)/se | mean time s |"
+        "| data sub-steps | noise | answered | failed | coverage 95 % | max abs(err)/se | mean time s | median time s | 90th pct time s | bootstrapped |"
     );
-    println!("|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     for &s in &subs {
         for &noise in &noises {
             let (mut inside, mut total, mut failed, mut answered) =
                 (0usize, 0usize, 0usize, 0usize);
             let mut worst: f64 = 0.0;
             let mut time = 0.0;
+            // Per record: its identification time (s), and how many ran the parametric
+            // bootstrap (automatic or asked for), which multiplies it.
+            let mut times: Vec<f64> = Vec::new();
+            let mut bootstrapped = 0usize;
             let mut fails = Vec::new();
             for seed in from..from + seeds {
                 let sim = simulate(
@@ -97,6 +101,11 @@ fn main() -> anyhow::Result<()> {
                 if a.flag("--bootstrap") {
                     opts.bootstrap = Some(a.get("--bootstrap", "0").parse()?);
                 }
+                // `--mid-record`: the record is said to be cut from a longer one (as a live
+                // window is), so it is identified with its initial state estimated.
+                if a.flag("--mid-record") && skip > 0 {
+                    opts.starts_mid_record = Some(skip as u64);
+                }
                 let t = std::time::Instant::now();
                 let r = identify(
                     setup,
@@ -106,7 +115,22 @@ fn main() -> anyhow::Result<()> {
                     &mut |_| {},
                     &mut |_, _| {},
                 );
-                time += t.elapsed().as_secs_f64();
+                let took = t.elapsed().as_secs_f64();
+                time += took;
+                times.push(took);
+                if let Ok(id) = &r
+                    && id
+                        .output_error
+                        .as_ref()
+                        .and_then(|o| o.prediction_error.as_ref())
+                        .and_then(|p| p.bootstrap.as_ref())
+                        .is_some_and(|b| b.used > 0)
+                {
+                    bootstrapped += 1;
+                }
+                if a.flag("--verbose") {
+                    println!("  seed {seed} time {took:.3} s");
+                }
                 match r {
                     // A failed identification (what `jointid replay` exits 1 on) counts as a
                     // failure even when it shows the passes' parameters.
@@ -181,12 +205,20 @@ fn main() -> anyhow::Result<()> {
                     }
                 }
             }
+            times.sort_by(f64::total_cmp);
+            // Nearest-rank percentiles of the records' times.
+            let pct = |q: f64| {
+                let k = ((q * times.len() as f64).ceil() as usize).clamp(1, times.len().max(1));
+                times.get(k - 1).copied().unwrap_or(f64::NAN)
+            };
             println!(
-                "| {s} | {:.0} % | {answered} | {failed} | {:.0} % | {:.1} | {:.2} |",
+                "| {s} | {:.0} % | {answered} | {failed} | {:.0} % | {:.1} | {:.2} | {:.2} | {:.2} | {bootstrapped} |",
                 noise * 100.0,
                 100.0 * inside as f64 / total.max(1) as f64,
                 worst.abs(),
-                time / seeds as f64
+                time / seeds as f64,
+                pct(0.5),
+                pct(0.9)
             );
             for f in fails.iter().take(3) {
                 println!("    {f}");

@@ -1162,6 +1162,21 @@ fn one_step_round(
     Ok(OneStep::Unsettled { at })
 }
 
+/// What a [`refine`] call is for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Wanted {
+    /// The answer and its stated errors (the sandwich over both error secants, the bound
+    /// rule's likelihood ratio).
+    ValuesAndErrors,
+    /// The answer's values alone: a parametric bootstrap replicate, whose stated errors
+    /// nobody reads (the bootstrap takes the replicates' spread). The same values to the bit
+    /// — the descent, the polish, the narrow error secant (whose Jacobian and lag the noise
+    /// shift uses) and the noise shift all run — without the runs that only state errors:
+    /// the wide error secant (8 predictor runs of a four-parameter law, ~12 % of a
+    /// replicate) and the bound rule's look back at the start's friction level.
+    Values,
+}
+
 /// Levenberg–Marquardt on the innovation cost from `start` with the observer built at
 /// `start` (process-noise force `force_std` N per sample), at most `max_iter` Jacobians,
 /// then once more with the observer rebuilt at the result; standard errors by the sandwich.
@@ -1181,6 +1196,7 @@ pub fn refine(
     force_std: f64,
     max_iter: usize,
     initial: Option<&[f64]>,
+    wanted: Wanted,
 ) -> Result<PemRefined, SimulateError> {
     let basis = setup.param_basis();
     let m = sigma.len();
@@ -1509,20 +1525,24 @@ pub fn refine(
                 Err(_) => p = evaluated.clone(),
             },
         }
-        wide_jacobian = jacobian(
-            setup,
-            model,
-            &basis,
-            secant_at.as_deref().unwrap_or(&p),
-            &width(ERROR_SECANTS[1]),
-            &pred,
-            excitation,
-            response,
-            substeps,
-            Some((J.r.clone(), J.cost)),
-            false,
-        )
-        .ok();
+        wide_jacobian = (wanted == Wanted::ValuesAndErrors)
+            .then(|| {
+                jacobian(
+                    setup,
+                    model,
+                    &basis,
+                    secant_at.as_deref().unwrap_or(&p),
+                    &width(ERROR_SECANTS[1]),
+                    &pred,
+                    excitation,
+                    response,
+                    substeps,
+                    Some((J.r.clone(), J.cost)),
+                    false,
+                )
+                .ok()
+            })
+            .flatten();
     }
     // Columns of concentrated innovations are already projected (the projection is linear).
     if pred.initial.is_some() && !pred.is_concentrated() {
@@ -1611,7 +1631,7 @@ pub fn refine(
     // start's level? (see `PemRefined::bound_likelihood_ratio`, [`FLAT_BOUND_LR`])
     let variance = (J.cost / nobs).max(1.0);
     let mut bound_likelihood_ratio: Vec<Option<f64>> = vec![None; p.len()];
-    for j in 0..p.len() {
+    for j in (0..p.len()).filter(|_| wanted == Wanted::ValuesAndErrors) {
         let level = start.get(j).copied().unwrap_or(0.0);
         if !(is_sign(&basis[j]) && p[j] <= 0.0 && level > 0.0) {
             continue;

@@ -444,7 +444,7 @@ pub(super) fn refine_by_prediction_error<'a>(
     (start, scales): (&'a [f64], &'a [f64]),
     other_start: Option<(&'a [f64], &'a [f64])>,
 ) -> Result<PemStage, crate::simulate::SimulateError> {
-    use crate::estimate::prediction_error::refine;
+    use crate::estimate::prediction_error::{Wanted, refine};
     let keys: Vec<Basis> = setup.param_basis();
     let floor_of = |start: &[f64]| {
         let level = keys
@@ -667,6 +667,7 @@ pub(super) fn refine_by_prediction_error<'a>(
         force_std.max(floor),
         opts.output_error_iterations,
         opts.initial_state.as_deref(),
+        Wanted::ValuesAndErrors,
     )?;
     crate::par::phase("pem refine", t0);
     // A start in motion that the first sample did not show, tested at the refined values
@@ -947,7 +948,7 @@ fn bootstrap(
     max_iter: usize,
     replicates: usize,
 ) -> Result<crate::estimate::prediction_error::BootstrapReport, crate::simulate::SimulateError> {
-    use crate::estimate::prediction_error::{BootstrapReport, refine};
+    use crate::estimate::prediction_error::{BootstrapReport, Wanted, refine};
     use rand::{RngExt, SeedableRng};
     use rand_distr::StandardNormal;
     let free = crate::simulate::response_to_excitation(
@@ -993,6 +994,7 @@ fn bootstrap(
             force_std,
             max_iter,
             None,
+            Wanted::Values,
         )
         .ok()
         .map(|x| x.values)
