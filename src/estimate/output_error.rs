@@ -576,20 +576,18 @@ pub fn refine_global(
     // already found does not count (measured, 100 % noise, 2,000 samples, seed 98: the best
     // scan point descended to the plain result's −3.4 %, the scan point near the truth was
     // fourth and never tried), up to six descents.
-    let mut distinct = 0;
-    for &i in local
-        .iter()
-        .filter(|&&i| (grid[i].0[j] - plain.values[j]).abs() > same_basin)
-        .take(6)
-    {
-        if distinct == 3 {
-            break;
-        }
+    // Each candidate's descent (a refinement on windows growing 4× to the whole record) is
+    // independent of the others: they run in batches of as many as there are threads
+    // (`crate::par`), and their results are taken in the candidates' order with the same
+    // rule as one after the other — so the same minima, the same best, the same answer; a
+    // batch may compute a descent past the third distinct minimum, whose result is then
+    // dropped unread. Why: on a Coulomb record at 64 model sub-steps the descents were a
+    // third of its refinement and ran on one core.
+    let descend = |&i: &usize| -> Option<Refined> {
         let mut p = grid[i].0.clone();
         let mut w = len;
-        let mut last;
         loop {
-            match refine(
+            let r = refine(
                 setup,
                 model,
                 &p,
@@ -599,39 +597,47 @@ pub fn refine_global(
                 sigma,
                 substeps,
                 max_iter,
-            ) {
-                Ok(r) => {
-                    p = r.values.clone();
-                    last = Some(r);
-                }
-                Err(_) => {
-                    last = None;
-                    break;
-                }
-            }
+            )
+            .ok()?;
             if w == n {
-                break;
+                return Some(r);
             }
+            p = r.values;
             w = (4 * w).min(n);
         }
-        let Some(r) = last else { continue };
-        let known = minima.iter().any(|m| {
-            m.values
-                .iter()
-                .zip(&r.values)
-                .zip(&plain.std_errors)
-                .all(|((a, b), s)| (a - b).abs() <= 3.0 * s)
-        });
-        if !known {
-            distinct += 1;
-        }
-        minima.push(Minimum {
-            values: r.values.clone(),
-            cost: r.report.cost_end,
-            from: "scan".into(),
-        });
-        if r.report.cost_end < best.report.cost_end {
-            best = r;
+    };
+    let candidates: Vec<usize> = local
+        .iter()
+        .copied()
+        .filter(|&i| (grid[i].0[j] - plain.values[j]).abs() > same_basin)
+        .take(6)
+        .collect();
+    let batch = crate::par::threads().max(1);
+    let mut distinct = 0;
+    'batches: for chunk in candidates.chunks(batch) {
+        for found in crate::par::map(chunk, descend) {
+            if distinct == 3 {
+                break 'batches;
+            }
+            let Some(r) = found else { continue };
+            let known = minima.iter().any(|m| {
+                m.values
+                    .iter()
+                    .zip(&r.values)
+                    .zip(&plain.std_errors)
+                    .all(|((a, b), s)| (a - b).abs() <= 3.0 * s)
+            });
+            if !known {
+                distinct += 1;
+            }
+            minima.push(Minimum {
+                values: r.values.clone(),
+                cost: r.report.cost_end,
+                from: "scan".into(),
+            });
+            if r.report.cost_end < best.report.cost_end {
+                best = r;
+            }
         }
     }
     // Probe the best point at ±1, 2, 4, 8 of its standard errors along every parameter: on a
@@ -642,20 +648,31 @@ pub fn refine_global(
     let mut probed = 0;
     let before_probe = best.values.clone();
     for _ in 0..PROBE_ROUNDS {
+        // The round's probes are independent free runs: run on parallel threads
+        // (`crate::par`), then compared in the order they were listed (the same lowest, ties
+        // to the first, as one after the other). Why: 16 runs of a two-parameter law, a
+        // sixth of a Coulomb record's refinement at 64 sub-steps, ran on one core.
+        let probes: Vec<Vec<f64>> = (0..best.values.len())
+            .flat_map(|j| {
+                PROBE_STEPS
+                    .into_iter()
+                    .flat_map(move |k| [-1.0, 1.0].into_iter().map(move |sign| (j, k, sign)))
+            })
+            .map(|(j, k, sign)| {
+                let mut p = best.values.clone();
+                p[j] += sign * k * best.std_errors[j];
+                feasible(&basis, &p)
+            })
+            .collect();
+        let costs = crate::par::map(&probes, |p| {
+            residuals(setup, model, p, excitation, response, sigma, substeps)
+                .map(|r| r.1 / nobs)
+                .unwrap_or(f64::INFINITY)
+        });
         let mut lowest: Option<(Vec<f64>, f64)> = None;
-        for j in 0..best.values.len() {
-            for k in PROBE_STEPS {
-                for sign in [-1.0, 1.0] {
-                    let mut p = best.values.clone();
-                    p[j] += sign * k * best.std_errors[j];
-                    let p = feasible(&basis, &p);
-                    let c = residuals(setup, model, &p, excitation, response, sigma, substeps)
-                        .map(|r| r.1 / nobs)
-                        .unwrap_or(f64::INFINITY);
-                    if lowest.as_ref().is_none_or(|l| c < l.1) {
-                        lowest = Some((p, c));
-                    }
-                }
+        for (p, c) in probes.into_iter().zip(costs) {
+            if lowest.as_ref().is_none_or(|l| c < l.1) {
+                lowest = Some((p, c));
             }
         }
         let Some((p, c)) = lowest else { break };
