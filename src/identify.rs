@@ -1295,7 +1295,8 @@ pub fn identify(
         }
         _ => first,
     };
-    // `--bootstrap` belongs to the prediction-error refinement of `sign(u)` laws: said
+    // `--bootstrap` belongs to the prediction-error refinement (`sign(u)` laws, friction
+    // laws in motion): said
     // rather than ignored without a word.
     let by_prediction_error = result
         .output_error
@@ -1303,7 +1304,7 @@ pub fn identify(
         .is_some_and(|o| o.prediction_error.is_some());
     if !has_sign_u_basis(setup) && !by_prediction_error && opts.bootstrap.is_some_and(|n| n > 0) {
         result.notes.push(
-            "`--bootstrap` not run: the parametric bootstrap belongs to the prediction-error refinement of `sign(u)` laws; this law's errors are its estimator's own (maximum likelihood's, or the free-run output error's scaled bound, widened for a misfit or a rough cost)".into(),
+            "`--bootstrap` not run: the parametric bootstrap belongs to the prediction-error refinement (of `sign(u)` laws, and of friction laws on records in motion); this law's errors are its estimator's own (maximum likelihood's, or the free-run output error's scaled bound, widened for a misfit or a rough cost)".into(),
         );
     }
     Ok(result)
@@ -2156,19 +2157,34 @@ fn finish_with_output_error(
                             .map(|((sp, ratio), naive)| sp / (ratio * naive))
                             .fold(0.0f64, f64::max);
                         result.notes.push(format!(
-                            "parametric bootstrap{}: {} of {} records simulated from the answer with this record's noise and refined again from the same start; the answer is corrected by their mean shift (largest {shift:.2} standard errors, `{}`) and every error is at least their spread (largest {ratio:.2}× the sandwich, as a t interval of {} replicates)",
+                            "parametric bootstrap{}: {} of {} records simulated from the answer{} with this record's noise and refined again from the same start; the answer is corrected by their mean shift (largest {shift:.2} standard errors, `{}`) and every error is at least their spread (largest {ratio:.2}× the sandwich, as a t interval of {} replicates)",
                             match (opts.bootstrap, rep.periodic_excitation, rep.smooth_excitation_gain) {
                                 (Some(_), _, _) => String::new(),
                                 (None, Some((rho, lag)), _) => format!(
                                     " (automatic: the excitation repeats itself, autocorrelation {rho:.2} at a lag of {lag} samples, and under a repeating excitation the sandwich errors of a `sign(u)` law covered 58 % of the truths; `--bootstrap 0` switches it off)"
                                 ),
                                 (None, None, Some(_)) => " (automatic: the excitation is smooth between samples, as an impact's, where the sandwich errors of a `sign(u)` law covered 91 % of the truths; `--bootstrap 0` switches it off)".to_string(),
-                                (None, None, None) => format!(
-                                    " (automatic: the sandwich errors differ {:.2}× between secants of ±1 and ±8 errors, so the innovations are not linear in the parameters over their errors — as under an excitation weak against the friction, where such sandwich errors covered 41–91 % of the truths; `--bootstrap 0` switches it off)",
-                                    rep.secant_disagreement.unwrap_or(f64::NAN)
-                                ),
+                                (None, None, None)
+                                    if rep
+                                        .secant_disagreement
+                                        .is_some_and(|d| d > pem::BOOTSTRAP_SECANT_DISAGREEMENT) =>
+                                {
+                                    format!(
+                                        " (automatic: the sandwich errors differ {:.2}× between secants of ±1 and ±8 errors, so the innovations are not linear in the parameters over their errors — as under an excitation weak against the friction, where such sandwich errors covered 41–91 % of the truths; `--bootstrap 0` switches it off)",
+                                        rep.secant_disagreement.unwrap_or(f64::NAN)
+                                    )
+                                }
+                                (None, None, None) => " (automatic: the law has a friction on the rate, `sign(v)`, refined by prediction error: the observer feeds the measurement noise into the model's rate and moves its zero crossings, where the friction switches — the sandwich errors covered 50–57 % of the truths at 100 % noise on records cut in motion; `--bootstrap 0` switches it off)".to_string(),
                             },
-                            b.used, b.replicates, keys[js], b.used
+                            b.used,
+                            b.replicates,
+                            if r.initial_state.is_some() {
+                                " and its start state (the record starts in motion; each replicate refits its own)"
+                            } else {
+                                ""
+                            },
+                            keys[js],
+                            b.used
                         ));
                     }
                     Some(b) => result.notes.push(match &b.failure {
@@ -2178,17 +2194,14 @@ fn finish_with_output_error(
                             b.used, b.replicates
                         ),
                     }),
+                    // Not run: switched off, or no occasion (a record in motion is
+                    // bootstrapped from its start state as one at rest is from rest).
                     None => {
-                        let occasion = pem::bootstrap_occasion(rep);
-                        let asked = opts.bootstrap.is_some_and(|n| n > 0);
-                        let automatic = opts.bootstrap.is_none() && occasion.is_some();
-                        if asked || (automatic && opts.initial_state.is_some()) {
-                            result.notes.push(
-                                "parametric bootstrap not run: the record starts in motion, and its replicates are simulated from rest".into(),
-                            )
-                        } else if let Some(why) = occasion {
+                        if let Some(why) =
+                            pem::bootstrap_occasion(rep, pem::has_rate_friction(setup))
+                        {
                             result.notes.push(format!(
-                                "parametric bootstrap switched off (`--bootstrap 0`): the errors of this `sign(u)` law are the sandwich's, which {why} (ACCURACY.md)"
+                                "parametric bootstrap switched off (`--bootstrap 0`): the errors of this `{friction_term}` law are the sandwich's, which {why} (ACCURACY.md)"
                             ))
                         }
                     }
