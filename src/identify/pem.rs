@@ -807,8 +807,8 @@ const RATE_FRICTION_OCCASION: &str = "for a friction on the rate (`sign(v)`) cov
 /// session; Coulomb `sign(v), u`, records cut in motion and said to be, 100 % noise, 20
 /// seeds each of 8- and 64-sub-step data, 15 answered): without the bootstrap `sign(v)`
 /// +6 to +100 % (14 of 15 beyond 2.5 errors, the worst 4.8), coverage 57 and 50 %; with
-/// it every estimate within 1.6 errors, coverage 100 %. (At rest such a law is refined by the free-run output error,
-/// which has no observer.)
+/// it every estimate within 1.6 errors, coverage 100 %. (At rest such a law is refined by
+/// the free-run output error, which has no observer.)
 pub(super) fn has_rate_friction(setup: &Setup) -> bool {
     setup
         .param_basis()
