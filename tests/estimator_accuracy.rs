@@ -6,7 +6,7 @@ mod common;
 
 use jointid::identify::{Identification, IdentifyOptions, TestData, identify};
 use jointid::setup::Setup;
-use jointid::simulate::{Noise, Scenario, SimulateOptions, simulate};
+use jointid::simulate::{Noise, Scenario, SimulateOptions, Simulated, simulate};
 
 /// The two-beam friction setup with the connection law and model sub-steps replaced.
 fn two_beam(basis: &[&str], truth: &[f64], model_substeps: usize) -> Setup {
@@ -295,6 +295,38 @@ fn a_cut_record_at_full_noise_is_seen_in_motion_by_its_innovations() {
     }
 }
 
+/// The Coulomb variant of the paper's setup (`sign(v), u`, the model at 1 sub-step) and
+/// 2,500 samples of its random test (20,000 N RMS) with `data_substeps` sub-steps and
+/// additive noise `noise` (of each channel's RMS).
+fn coulomb_test(data_substeps: usize, noise: f64, seed: u64) -> (Setup, Simulated) {
+    let setup = two_beam(&["sign(v)", "u"], &[3000.0, 3.0e5], 1);
+    let sim = simulate(
+        &setup,
+        &SimulateOptions {
+            scenario: Scenario::Random { rms: 2e4 },
+            steps: 2500,
+            dt_s: setup.dt_s,
+            substeps: data_substeps,
+            noise: Noise::Additive(noise),
+            seed,
+        },
+    )
+    .unwrap();
+    (setup, sim)
+}
+
+/// Samples `skip .. skip + 2,000` of a simulated test, numbered as in the test.
+fn window(sim: &Simulated, skip: usize) -> TestData {
+    TestData {
+        samples: (skip as u64..skip as u64 + 2000).collect(),
+        t_ns: (skip as u64..skip as u64 + 2000)
+            .map(|i| i * 100_000)
+            .collect(),
+        excitation: sim.excitation[skip..skip + 2000].to_vec(),
+        response: sim.response[skip..skip + 2000].to_vec(),
+    }
+}
+
 /// A record cut from a test in motion whose first sample reads like rest, on a law without
 /// a `sign(u)` term (Coulomb `sign(v), u`; 64-sub-step data, 10 % noise, samples 500–2,499
 /// of seed 5022): the free-run output error starts the model at rest, and its answer was
@@ -307,25 +339,8 @@ fn a_cut_record_at_full_noise_is_seen_in_motion_by_its_innovations() {
 /// (at rest) is answered by the free-run output error, every parameter within 3 errors.
 #[test]
 fn a_coulomb_record_cut_in_motion_is_identified_with_its_start_state() {
-    let setup = two_beam(&["sign(v)", "u"], &[3000.0, 3.0e5], 1);
-    let sim = simulate(
-        &setup,
-        &SimulateOptions {
-            scenario: Scenario::Random { rms: 2e4 },
-            steps: 2500,
-            dt_s: setup.dt_s,
-            substeps: 64,
-            noise: Noise::Additive(0.1),
-            seed: 5022,
-        },
-    )
-    .unwrap();
-    let cut = |skip: usize| TestData {
-        samples: (0..2000).collect(),
-        t_ns: vec![0; 2000],
-        excitation: sim.excitation[skip..skip + 2000].to_vec(),
-        response: sim.response[skip..skip + 2000].to_vec(),
-    };
+    let (setup, sim) = coulomb_test(64, 0.1, 5022);
+    let cut = |skip: usize| window(&sim, skip);
     let opts = IdentifyOptions::from_setup(&setup);
     let id = identify(
         &setup,
@@ -381,25 +396,8 @@ fn a_coulomb_record_cut_in_motion_is_identified_with_its_start_state() {
 /// corrects it: every parameter within 2 errors, and the note says why it ran.
 #[test]
 fn a_rate_friction_cut_in_motion_at_full_noise_is_corrected_by_the_bootstrap() {
-    let setup = two_beam(&["sign(v)", "u"], &[3000.0, 3.0e5], 1);
-    let sim = simulate(
-        &setup,
-        &SimulateOptions {
-            scenario: Scenario::Random { rms: 2e4 },
-            steps: 2500,
-            dt_s: setup.dt_s,
-            substeps: 8,
-            noise: Noise::Additive(1.0),
-            seed: 7305,
-        },
-    )
-    .unwrap();
-    let data = TestData {
-        samples: (500..2500).collect(),
-        t_ns: (500..2500u64).map(|i| i * 100_000).collect(),
-        excitation: sim.excitation[500..].to_vec(),
-        response: sim.response[500..].to_vec(),
-    };
+    let (setup, sim) = coulomb_test(8, 1.0, 7305);
+    let data = window(&sim, 500);
     let opts = IdentifyOptions {
         starts_mid_record: Some(500),
         ..IdentifyOptions::from_setup(&setup)

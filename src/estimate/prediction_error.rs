@@ -1486,59 +1486,44 @@ pub fn refine(
             |k: f64| -> Vec<f64> { at_least(&naive).iter().map(|x| x * k / SECANT).collect() };
         // The averaged polish's answer has not been run yet: its base run is made here.
         let base = (evaluated == p).then(|| (J.r.clone(), J.cost));
-        match secant_at.as_ref() {
-            // A one-step round's answer is its last step from `at`, under [`ONE_STEP_TOL`]
-            // errors away and not run: the error secants are made at `at`, on its run (a
-            // failure keeps the round's own ±2-error secant there).
-            Some(at) => {
-                if let Ok(J2) = jacobian(
-                    setup,
-                    model,
-                    &basis,
-                    at,
-                    &width(ERROR_SECANTS[0]),
-                    &pred,
-                    excitation,
-                    response,
-                    substeps,
-                    Some((J.r.clone(), J.cost)),
-                    false,
-                ) {
-                    J = J2;
-                }
-            }
-            None => match jacobian(
+        // A secant of half-width `k` errors at `at` (its base run `base` when known).
+        let secant = |at: &[f64], k: f64, base: Option<(Vec<f64>, f64)>| {
+            jacobian(
                 setup,
                 model,
                 &basis,
-                &p,
-                &width(ERROR_SECANTS[0]),
+                at,
+                &width(k),
                 &pred,
                 excitation,
                 response,
                 substeps,
                 base,
                 false,
-            ) {
+            )
+        };
+        match secant_at.as_ref() {
+            // A one-step round's answer is its last step from `at`, under [`ONE_STEP_TOL`]
+            // errors away and not run: the error secants are made at `at`, on its run (a
+            // failure keeps the round's own ±2-error secant there).
+            Some(at) => {
+                if let Ok(J2) = secant(at, ERROR_SECANTS[0], Some((J.r.clone(), J.cost))) {
+                    J = J2;
+                }
+            }
+            None => match secant(&p, ERROR_SECANTS[0], base) {
                 Ok(J2) => J = J2,
                 // Without a run at the averaged answer, the last point run is the answer.
                 Err(_) => p = evaluated.clone(),
             },
         }
+        // Only for the stated errors: a bootstrap replicate ([`Wanted::Values`]) skips it.
         wide_jacobian = (wanted == Wanted::ValuesAndErrors)
             .then(|| {
-                jacobian(
-                    setup,
-                    model,
-                    &basis,
+                secant(
                     secant_at.as_deref().unwrap_or(&p),
-                    &width(ERROR_SECANTS[1]),
-                    &pred,
-                    excitation,
-                    response,
-                    substeps,
+                    ERROR_SECANTS[1],
                     Some((J.r.clone(), J.cost)),
-                    false,
                 )
                 .ok()
             })
