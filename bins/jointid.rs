@@ -150,12 +150,14 @@ enum Command {
         /// Switch the output-error refinement off (the Kalman pipeline's last stage).
         #[arg(long)]
         no_refine: bool,
-        /// Parametric bootstrap of a `sign(u)` law's answer with N replicates: records
-        /// simulated from the answer with the record's noise, identified again; the answer is
-        /// corrected by their mean shift and its errors are at least their spread (~0.15 s
-        /// per replicate at 2,000 samples). Default: 10 when the excitation repeats itself
-        /// (a sine), is smooth between samples (an impact), or the analytic errors depend on
-        /// the secant they are made from (an excitation weak against the friction) — where
+        /// Parametric bootstrap of an answer refined by prediction error (a `sign(u)` law, or
+        /// a friction law on a record in motion) with N replicates: records simulated from
+        /// the answer (and its start state, in motion) with the record's noise, identified
+        /// again; the answer is corrected by their mean shift and its errors are at least
+        /// their spread (~0.15 s per replicate at 2,000 samples). Default: 10 when the
+        /// excitation repeats itself (a sine), is smooth between samples (an impact), the
+        /// analytic errors depend on the secant they are made from (an excitation weak
+        /// against the friction), or the law has a friction on the rate (`sign(v)`) — where
         /// they do not hold — else none; 0 switches it off (README, Accuracy).
         #[arg(long, value_name = "N")]
         bootstrap: Option<usize>,

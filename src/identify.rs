@@ -279,9 +279,9 @@ pub struct IdentifyOptions {
     pub max_tunings_refined: usize,
     /// Replicates of the parametric bootstrap of a prediction-error answer (`Some(0)`: none;
     /// `None`: automatic, [`pem::AUTO_BOOTSTRAP_REPLICATES`] when the excitation repeats
-    /// itself or was found smooth between samples, or the sandwich depends on its secant
-    /// ([`pem::BOOTSTRAP_SECANT_DISAGREEMENT`]), and none otherwise; see
-    /// `identify::pem::bootstrap`).
+    /// itself or was found smooth between samples, the sandwich depends on its secant
+    /// ([`pem::BOOTSTRAP_SECANT_DISAGREEMENT`]) or the law has a friction on the rate, and
+    /// none otherwise; see `identify::pem::bootstrap_occasion` and `identify::pem::bootstrap`).
     pub bootstrap: Option<usize>,
     /// Options of the maximum-likelihood estimator (`EstimatorKind::Ml`).
     pub ml: crate::estimate::ml::MlOptions,
@@ -1296,8 +1296,7 @@ pub fn identify(
         _ => first,
     };
     // `--bootstrap` belongs to the prediction-error refinement (`sign(u)` laws, friction
-    // laws in motion): said
-    // rather than ignored without a word.
+    // laws in motion): said rather than ignored without a word.
     let by_prediction_error = result
         .output_error
         .as_ref()
@@ -2161,9 +2160,9 @@ fn finish_with_output_error(
                             match (opts.bootstrap, rep.periodic_excitation, rep.smooth_excitation_gain) {
                                 (Some(_), _, _) => String::new(),
                                 (None, Some((rho, lag)), _) => format!(
-                                    " (automatic: the excitation repeats itself, autocorrelation {rho:.2} at a lag of {lag} samples, and under a repeating excitation the sandwich errors of a `sign(u)` law covered 58 % of the truths; `--bootstrap 0` switches it off)"
+                                    " (automatic: the excitation repeats itself, autocorrelation {rho:.2} at a lag of {lag} samples, and under a repeating excitation the sandwich errors of a `sign(u)` law were measured to cover 58 % of the truths; `--bootstrap 0` switches it off)"
                                 ),
-                                (None, None, Some(_)) => " (automatic: the excitation is smooth between samples, as an impact's, where the sandwich errors of a `sign(u)` law covered 91 % of the truths; `--bootstrap 0` switches it off)".to_string(),
+                                (None, None, Some(_)) => " (automatic: the excitation is smooth between samples, as an impact's, where the sandwich errors of a `sign(u)` law were measured to cover 91 % of the truths; `--bootstrap 0` switches it off)".to_string(),
                                 (None, None, None)
                                     if rep
                                         .secant_disagreement
@@ -2174,7 +2173,10 @@ fn finish_with_output_error(
                                         rep.secant_disagreement.unwrap_or(f64::NAN)
                                     )
                                 }
-                                (None, None, None) => " (automatic: the law has a friction on the rate, `sign(v)`, refined by prediction error: the observer feeds the measurement noise into the model's rate and moves its zero crossings, where the friction switches — the sandwich errors covered 50–57 % of the truths at 100 % noise on records cut in motion; `--bootstrap 0` switches it off)".to_string(),
+                                (None, None, None) => format!(
+                                    " (automatic: the law has a friction on the rate refined by prediction error, whose sandwich errors {}; `--bootstrap 0` switches it off)",
+                                    pem::RATE_FRICTION_OCCASION
+                                ),
                             },
                             b.used,
                             b.replicates,

@@ -582,7 +582,9 @@ pub fn refine_global(
     // rule as one after the other — so the same minima, the same best, the same answer; a
     // batch may compute a descent past the third distinct minimum, whose result is then
     // dropped unread. Why: on a Coulomb record at 64 model sub-steps the descents were a
-    // third of its refinement and ran on one core.
+    // third of its refinement and ran on one core. (Each descent's sensitivities are a
+    // parallel map of their own: for a moment up to threads² threads, as in the bootstrap;
+    // the results do not depend on it.)
     let descend = |&i: &usize| -> Option<Refined> {
         let mut p = grid[i].0.clone();
         let mut w = len;

@@ -726,6 +726,7 @@ pub(super) fn refine_by_prediction_error<'a>(
             sigma,
             &r,
             (start, scales),
+            opts.initial_state.as_deref(),
             sub,
             force_std.max(floor),
             opts.output_error_iterations,
@@ -743,6 +744,8 @@ pub(super) fn refine_by_prediction_error<'a>(
         if boot.used * 2 >= boot.replicates {
             let k = boot.used as f64;
             let basis = setup.param_basis();
+            // (A record in motion keeps the refinement's start state, fitted at the values
+            // before this correction: the shift is the procedure's bias, not a new fit.)
             let corrected: Vec<f64> = r
                 .values
                 .iter()
@@ -791,11 +794,12 @@ pub(super) fn bootstrap_occasion(
 }
 
 /// The fourth occasion of the automatic bootstrap, as the notes state it.
-const RATE_FRICTION_OCCASION: &str = "for a friction on the rate (`sign(v)`) covered 50–57 % of the truths at 100 % noise (records cut in motion: the observer feeds the measurement noise into the model's rate and moves its zero crossings, where the friction switches, which the sandwich does not see)";
+pub(super) const RATE_FRICTION_OCCASION: &str = "for a friction on the rate (`sign(v)`) covered 50–57 % of the truths at 100 % noise (records cut in motion: the observer feeds the measurement noise into the model's rate and moves its zero crossings, where the friction switches, which the sandwich does not see)";
 
 /// Whether the law has a friction on the rate (`sign(v)`): the fourth occasion of the
 /// automatic bootstrap ([`bootstrap_occasion`]) when such a law is refined by prediction
-/// error (a record in motion, or a law with a `sign(u)` term too).
+/// error — on a record in motion, or at rest when the law has a `sign(u)` term too (not
+/// measured there: the rule follows the cause, the observer, wherever it acts).
 ///
 /// Why: the observer corrects the model's state with the measured outputs, noise included,
 /// so the predicted rate near its zero crossings is noisy and the friction switches where
@@ -807,8 +811,8 @@ const RATE_FRICTION_OCCASION: &str = "for a friction on the rate (`sign(v)`) cov
 /// session; Coulomb `sign(v), u`, records cut in motion and said to be, 100 % noise, 20
 /// seeds each of 8- and 64-sub-step data, 15 answered): without the bootstrap `sign(v)`
 /// +6 to +100 % (14 of 15 beyond 2.5 errors, the worst 4.8), coverage 57 and 50 %; with
-/// it every estimate within 1.6 errors, coverage 100 %. (At rest such a law is refined by
-/// the free-run output error, which has no observer.)
+/// it every estimate within 1.6 errors, coverage 100 %. (At rest a law without a `sign(u)`
+/// term is refined by the free-run output error, which has no observer.)
 pub(super) fn has_rate_friction(setup: &Setup) -> bool {
     setup
         .param_basis()
@@ -850,9 +854,10 @@ pub(super) fn moment_matched(exc: &[Vec<f64>]) -> Vec<Vec<f64>> {
 
 /// Replicates of the parametric bootstrap when it is automatic (`IdentifyOptions::bootstrap`
 /// `None`): run when the excitation repeats itself ([`excitation_periodicity`]), was found
-/// smooth between samples (an impact), or the sandwich depends on its secant
+/// smooth between samples (an impact), the sandwich depends on its secant
 /// ([`BOOTSTRAP_SECANT_DISAGREEMENT`]) — where the sandwich errors of a `sign(u)` law are
-/// measured not to hold — and not otherwise.
+/// measured not to hold — or the law has a friction on the rate ([`has_rate_friction`]),
+/// and not otherwise (the one rule: [`bootstrap_occasion`]).
 /// Ten, not twenty: over 32 sine seeds (8-sub-step data, 1 % noise) 10 replicates covered
 /// 94 % of the truths (worst 3.3 errors) and 20 covered 91 % (worst 2.8) — equal within
 /// the sweep's own scatter — at half the time (~1.7–2 s at 2,000 samples); with the t
@@ -952,15 +957,20 @@ const BOOTSTRAP_SEED: u64 = 0x0062_6f6f_7473;
 
 /// Parametric bootstrap of the prediction-error answer `r`: `replicates` records of the
 /// model at `r`'s values driven by the record's excitation (`data`'s, as the model
-/// interpolates it) from rest — from `r`'s start state when the record starts in motion,
-/// each replicate then refitting its own start state as the record's refinement did — at
-/// the refinement's sub-steps, each with white noise at
-/// the record's level per channel — the smaller of `sigma` and the RMS of the record's
-/// misfit to that free run (a model error that the free run shows is not noise) — and each
-/// refined again as the record was: from the same start values (`start`, the passes'
-/// answer, and its `scales`), with the same observer force, level and noise model.
-/// Their mean shift from `r`'s values is the procedure's bias there and their spread its
-/// error, whatever the sandwich assumes.
+/// interpolates it) from rest, or, for a record in motion, from `r`'s refined start state;
+/// at the refinement's sub-steps, each with white noise at the record's level per channel —
+/// the smaller of `sigma` and the RMS of the record's misfit to that free run (a model
+/// error that the free run shows is not noise; from a start state the free run of a
+/// friction law drifts from the record, and the level is then `sigma`) — and each refined
+/// again as the record was: from the same start values (`start`, the passes' answer, and
+/// its `scales`) and, in motion, the same start-state guess (`initial`, the passes'
+/// initial-state fit, refitted in every run), with the same observer force, level and
+/// noise model. Their mean shift from `r`'s values is the procedure's bias there and their
+/// spread its error, whatever the sandwich assumes.
+///
+/// The free run from a start state is the observer's run with a zero gain: it steps through
+/// the composed sample maps, whose round-off differs from the sub-step path's; the
+/// replicates are synthetic records, so that difference is only a different draw.
 ///
 /// Why: on sine tests with a `sign(u)` law the sandwich errors cover 58 % of the truths (16
 /// seeds, 8-sub-step data, 1 % noise) and `sign(u)` is −2.0 errors off on average: the
@@ -980,6 +990,7 @@ fn bootstrap(
     sigma: &[f64],
     r: &crate::estimate::prediction_error::PemRefined,
     (start, scales): (&[f64], &[f64]),
+    initial: Option<&[f64]>,
     substeps: usize,
     force_std: f64,
     max_iter: usize,
@@ -992,8 +1003,7 @@ fn bootstrap(
     // with a zero gain is the free run from the state it is given).
     let free = match r.initial_state.as_deref() {
         Some(x0) => {
-            let m = model.stations.len();
-            let zero = nalgebra::DMatrix::zeros(3 * model.n(), m);
+            let zero = nalgebra::DMatrix::zeros(3 * model.n(), model.stations.len());
             let mut out = Vec::with_capacity(data.len());
             crate::simulate::each_prediction_with_observer(
                 setup,
@@ -1052,7 +1062,9 @@ fn bootstrap(
             substeps,
             force_std,
             max_iter,
-            r.initial_state.as_deref(),
+            // Where the record's refinement started its start state (replicates started at
+            // their own truth would miss the path's error, as for the parameters).
+            r.initial_state.as_ref().and(initial),
             Wanted::Values,
         )
         .ok()

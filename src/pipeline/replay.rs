@@ -235,7 +235,8 @@ fn identify_stage(
         },
     );
     crate::par::phase("identify (whole call)", t_identify);
-    // `--bootstrap` acts on the prediction-error refinement of `sign(u)` laws only.
+    // `--bootstrap` acts on the prediction-error refinement only (`sign(u)` laws, friction
+    // laws on records in motion).
     let identification = identification.map(|mut id| {
         let bootstrapped = id
             .output_error
@@ -245,7 +246,7 @@ fn identify_stage(
         let said = id.notes.iter().any(|n| n.contains("parametric bootstrap"));
         if opts.bootstrap.is_some_and(|n| n > 0) && !bootstrapped && !said {
             id.notes.push(
-                "`--bootstrap` not run: it applies to the prediction-error refinement of `sign(u)` laws, which did not give this answer".into(),
+                "`--bootstrap` not run: it applies to the prediction-error refinement (of `sign(u)` laws, and of friction laws on records in motion), which did not give this answer".into(),
             );
         }
         id
