@@ -716,7 +716,10 @@ pub(super) fn refine_by_prediction_error<'a>(
     } else {
         0
     });
-    if replicates > 0 {
+    // Not for an answer `identify` will not use (its model explains the outputs only to
+    // more than [`PEM_MAX_COST`] × the noise: the bootstrap does not change that cost), whose
+    // ten refinements would be paid for nothing.
+    if replicates > 0 && r.report.cost_end <= PEM_MAX_COST {
         let t0 = std::time::Instant::now();
         // A bootstrap that cannot run leaves the answer as it is (the note says why).
         let boot = bootstrap(
