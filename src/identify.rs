@@ -2163,19 +2163,11 @@ fn finish_with_output_error(
                                     " (automatic: the excitation repeats itself, autocorrelation {rho:.2} at a lag of {lag} samples, and under a repeating excitation the sandwich errors of a `sign(u)` law were measured to cover 58 % of the truths; `--bootstrap 0` switches it off)"
                                 ),
                                 (None, None, Some(_)) => " (automatic: the excitation is smooth between samples, as an impact's, where the sandwich errors of a `sign(u)` law were measured to cover 91 % of the truths; `--bootstrap 0` switches it off)".to_string(),
-                                (None, None, None)
-                                    if rep
-                                        .secant_disagreement
-                                        .is_some_and(|d| d > pem::BOOTSTRAP_SECANT_DISAGREEMENT) =>
-                                {
-                                    format!(
-                                        " (automatic: the sandwich errors differ {:.2}× between secants of ±1 and ±8 errors, so the innovations are not linear in the parameters over their errors — as under an excitation weak against the friction, where such sandwich errors covered 41–91 % of the truths; `--bootstrap 0` switches it off)",
-                                        rep.secant_disagreement.unwrap_or(f64::NAN)
-                                    )
-                                }
+                                // The other occasions, in the rule's own words.
                                 (None, None, None) => format!(
-                                    " (automatic: the law has a friction on the rate refined by prediction error, whose sandwich errors {}; `--bootstrap 0` switches it off)",
-                                    pem::RATE_FRICTION_OCCASION
+                                    " (automatic: the sandwich errors {}; `--bootstrap 0` switches it off)",
+                                    pem::bootstrap_occasion(rep, pem::has_rate_friction(setup))
+                                        .unwrap_or_default()
                                 ),
                             },
                             b.used,

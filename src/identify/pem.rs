@@ -787,7 +787,7 @@ pub(super) fn bootstrap_occasion(
         .filter(|d| *d > BOOTSTRAP_SECANT_DISAGREEMENT)
     {
         Some(format!(
-            "differ {d:.2}× between secants of ±1 and ±8 errors and, where they did under an excitation weak against the friction, covered 41–91 % of the truths"
+            "differ {d:.2}× between secants of ±1 and ±8 errors (the innovations are not linear in the parameters over their errors) and, where they did under an excitation weak against the friction, covered 41–91 % of the truths"
         ))
     } else if rate_friction {
         Some(RATE_FRICTION_OCCASION.into())
@@ -797,7 +797,7 @@ pub(super) fn bootstrap_occasion(
 }
 
 /// The fourth occasion of the automatic bootstrap, as the notes state it.
-pub(super) const RATE_FRICTION_OCCASION: &str = "for a friction on the rate (`sign(v)`) covered 50–57 % of the truths at 100 % noise (records cut in motion: the observer feeds the measurement noise into the model's rate and moves its zero crossings, where the friction switches, which the sandwich does not see)";
+const RATE_FRICTION_OCCASION: &str = "for a friction on the rate (`sign(v)`) covered 50–57 % of the truths at 100 % noise (records cut in motion: the observer feeds the measurement noise into the model's rate and moves its zero crossings, where the friction switches, which the sandwich does not see)";
 
 /// Whether the law has a friction on the rate (`sign(v)`): the fourth occasion of the
 /// automatic bootstrap ([`bootstrap_occasion`]) when such a law is refined by prediction
@@ -1005,23 +1005,17 @@ fn bootstrap(
     // A record in motion: the answer's free run from its start state (the observer's run
     // with a zero gain is the free run from the state it is given).
     let free = match r.initial_state.as_deref() {
-        Some(x0) => {
-            let zero = nalgebra::DMatrix::zeros(3 * model.n(), model.stations.len());
-            let mut out = Vec::with_capacity(data.len());
-            crate::simulate::each_prediction_with_observer(
-                setup,
-                model,
-                &r.values,
-                &data.excitation,
-                &data.response,
-                setup.dt_s,
-                substeps,
-                &zero,
-                Some(x0),
-                &mut |_, y| out.push(y.to_vec()),
-            )?;
-            out
-        }
+        Some(x0) => crate::simulate::predictions_with_observer(
+            setup,
+            model,
+            &r.values,
+            &data.excitation,
+            &data.response,
+            setup.dt_s,
+            substeps,
+            &nalgebra::DMatrix::zeros(3 * model.n(), model.stations.len()),
+            Some(x0),
+        )?,
         None => crate::simulate::response_to_excitation(
             setup,
             model,
@@ -1066,8 +1060,9 @@ fn bootstrap(
             force_std,
             max_iter,
             // Where the record's refinement started its start state (replicates started at
-            // their own truth would miss the path's error, as for the parameters).
-            r.initial_state.as_ref().and(initial),
+            // their own truth would miss the path's error, as for the parameters); `None`
+            // at rest, as `r.initial_state` then is.
+            initial,
             Wanted::Values,
         )
         .ok()
