@@ -1047,7 +1047,6 @@ fn jacobian(
             }
         }
         let mut zc: Vec<Vec<f64>> = vec![vec![0.0; len * m]; ns];
-        let mut next = DMatrix::zeros(m, ns);
         for i in 0..len {
             for k in 0..m {
                 if prob.measured[i * m + k].is_finite() {
@@ -1056,8 +1055,8 @@ fn jacobian(
                     }
                 }
             }
-            next.gemm(1.0, &W, &disc.Phi, 0.0);
-            std::mem::swap(&mut W, &mut next);
+            // (`dense::product`: nalgebra's `W Φ` to the bit, without its packing.)
+            W = crate::dense::product(&W, &disc.Phi);
         }
         cols.extend(zc);
     } else if free_z0 {
@@ -1079,13 +1078,37 @@ fn jacobian(
 }
 
 /// Normal equations of the column-scaled Jacobian.
+///
+/// Every sum `Σᵢ xᵢ yᵢ` is the sequential chain from −0 that `Iterator::sum` makes (a
+/// rounded product, then a rounded add, in the order of `i`), but all the pairs' chains
+/// advance together, one row of the Jacobian at a time: independent chains the compiler
+/// keeps in vector registers, instead of one dependent chain per pair (a fifth of an
+/// identification's instructions went to those chains).
 fn normal(jac: &Jacobian) -> (DMatrix<f64>, DVector<f64>, Vec<f64>) {
     let nc = jac.cols.len();
-    let scale: Vec<f64> = jac
-        .cols
+    // The columns and the residual side by side, row by row (`nc + 1` per row).
+    let width = nc + 1;
+    let rows = jac.r.len();
+    let mut row_major = vec![0.0; rows * width];
+    for (a, col) in jac.cols.iter().chain(std::iter::once(&jac.r)).enumerate() {
+        for (i, v) in col.iter().enumerate() {
+            row_major[i * width + a] = *v;
+        }
+    }
+    // `sums[a][b − a]`: `Σᵢ colₐ[i]·col_b[i]` for `b ≥ a` (`b = nc`: the residual).
+    let mut sums: Vec<Vec<f64>> = (0..nc).map(|a| vec![-0.0; width - a]).collect();
+    for row in row_major.chunks_exact(width) {
+        for (a, acc) in sums.iter_mut().enumerate() {
+            let x = row[a];
+            for (s, y) in acc.iter_mut().zip(&row[a..]) {
+                *s += x * y;
+            }
+        }
+    }
+    let scale: Vec<f64> = sums
         .iter()
-        .map(|c| {
-            let s = c.iter().map(|v| v * v).sum::<f64>().sqrt();
+        .map(|acc| {
+            let s = acc[0].sqrt();
             if s > 0.0 && s.is_finite() { s } else { 1.0 }
         })
         .collect();
@@ -1093,20 +1116,10 @@ fn normal(jac: &Jacobian) -> (DMatrix<f64>, DVector<f64>, Vec<f64>) {
     let mut g = DVector::zeros(nc);
     for a in 0..nc {
         for b in a..nc {
-            let v: f64 = jac.cols[a]
-                .iter()
-                .zip(&jac.cols[b])
-                .map(|(x, y)| x * y)
-                .sum();
-            A[(a, b)] = v / (scale[a] * scale[b]);
+            A[(a, b)] = sums[a][b - a] / (scale[a] * scale[b]);
             A[(b, a)] = A[(a, b)];
         }
-        g[a] = jac.cols[a]
-            .iter()
-            .zip(&jac.r)
-            .map(|(x, y)| x * y)
-            .sum::<f64>()
-            / scale[a];
+        g[a] = sums[a][nc - a] / scale[a];
     }
     (A, g, scale)
 }
