@@ -789,6 +789,7 @@ impl<'a> Problem<'a> {
         full: bool,
         out: &mut Trace,
     ) -> Result<(), usize> {
+        use crate::dense::{Op, gemv};
         let (n, ne, q, m) = (self.n, self.ne, self.q, self.m);
         let substeps = disc.steps_per_sample;
         let laws = self.laws(p);
@@ -841,9 +842,9 @@ impl<'a> Problem<'a> {
         for i in 0..len {
             // Read-out at sample i.
             if self.needs_acc || full {
-                acc.gemv(1.0, &disc.Au, &z, 0.0);
-                acc.gemv(1.0, &disc.Ap, &pe, 1.0);
-                acc.gemv(1.0, &disc.Af, &f, 1.0);
+                gemv(&mut acc, &disc.Au, &z, Op::Set);
+                gemv(&mut acc, &disc.Ap, &pe, Op::Add);
+                gemv(&mut acc, &disc.Af, &f, Op::Add);
             }
             for (k, st) in self.model.stations.iter().enumerate() {
                 out.y[i * m + k] = match st.quantity {
@@ -874,11 +875,12 @@ impl<'a> Problem<'a> {
                 pb.axpy(t, &pe_next, 1.0 - t);
                 dp.copy_from(&pb);
                 dp -= &pa;
-                zs.gemv(1.0, &disc.Phi, &z, 0.0);
-                zs.gemv(1.0, &disc.G1p, &pa, 1.0);
-                zs.gemv(1.0, &disc.G2p, &dp, 1.0);
-                zs.gemv(1.0, &disc.G1f, &f, 1.0);
-                zs.gemv(-1.0, &disc.G2f, &f, 1.0);
+                // (`dense::gemv`: nalgebra's `gemv` to the bit, in wider registers.)
+                gemv(&mut zs, &disc.Phi, &z, Op::Set);
+                gemv(&mut zs, &disc.G1p, &pa, Op::Add);
+                gemv(&mut zs, &disc.G2p, &dp, Op::Add);
+                gemv(&mut zs, &disc.G1f, &f, Op::Add);
+                gemv(&mut zs, &disc.G2f, &f, Op::Subtract);
                 // Implicit force at the sub-step's end (Gauss–Seidel over connections).
                 f_next.copy_from(&f);
                 for _sweep in 0..(if q > 1 { 30 } else { 1 }) {
@@ -900,7 +902,7 @@ impl<'a> Problem<'a> {
                         break;
                     }
                 }
-                zs.gemv(1.0, &disc.G2f, &f_next, 1.0);
+                gemv(&mut zs, &disc.G2f, &f_next, Op::Add);
                 std::mem::swap(&mut z, &mut zs);
                 f.copy_from(&f_next);
                 pa.copy_from(&pb);
@@ -1078,33 +1080,19 @@ fn jacobian(
 }
 
 /// Normal equations of the column-scaled Jacobian.
-///
-/// Every sum `Σᵢ xᵢ yᵢ` is the sequential chain from −0 that `Iterator::sum` makes (a
-/// rounded product, then a rounded add, in the order of `i`), but all the pairs' chains
-/// advance together, one row of the Jacobian at a time: independent chains the compiler
-/// keeps in vector registers, instead of one dependent chain per pair (a fifth of an
-/// identification's instructions went to those chains).
 fn normal(jac: &Jacobian) -> (DMatrix<f64>, DVector<f64>, Vec<f64>) {
     let nc = jac.cols.len();
-    // The columns and the residual side by side, row by row (`nc + 1` per row).
-    let width = nc + 1;
-    let rows = jac.r.len();
-    let mut row_major = vec![0.0; rows * width];
-    for (a, col) in jac.cols.iter().chain(std::iter::once(&jac.r)).enumerate() {
-        for (i, v) in col.iter().enumerate() {
-            row_major[i * width + a] = *v;
-        }
-    }
     // `sums[a][b − a]`: `Σᵢ colₐ[i]·col_b[i]` for `b ≥ a` (`b = nc`: the residual).
-    let mut sums: Vec<Vec<f64>> = (0..nc).map(|a| vec![-0.0; width - a]).collect();
-    for row in row_major.chunks_exact(width) {
-        for (a, acc) in sums.iter_mut().enumerate() {
-            let x = row[a];
-            for (s, y) in acc.iter_mut().zip(&row[a..]) {
-                *s += x * y;
-            }
-        }
-    }
+    let sums: Vec<Vec<f64>> = (0..nc)
+        .map(|a| {
+            let others: Vec<&[f64]> = jac.cols[a..]
+                .iter()
+                .map(Vec::as_slice)
+                .chain(std::iter::once(jac.r.as_slice()))
+                .collect();
+            dots(&jac.cols[a], &others)
+        })
+        .collect();
     let scale: Vec<f64> = sums
         .iter()
         .map(|acc| {
@@ -1122,6 +1110,41 @@ fn normal(jac: &Jacobian) -> (DMatrix<f64>, DVector<f64>, Vec<f64>) {
         g[a] = sums[a][nc - a] / scale[a];
     }
     (A, g, scale)
+}
+
+/// `Σᵢ x[i]·y[i]` for every `y` of `ys`, each the sequential chain from −0 that
+/// `Iterator::sum` makes (a rounded product, then a rounded add, in the order of `i`), so
+/// the same bits; four chains advance together. Why: one dependent chain per pair waits
+/// on its add's latency at every term (the normal equations of a 24-column Jacobian were a
+/// fifth of an identification's instructions); four independent chains fill that wait.
+fn dots(x: &[f64], ys: &[&[f64]]) -> Vec<f64> {
+    let mut out = Vec::with_capacity(ys.len());
+    for group in ys.chunks(4) {
+        if let [y0, y1, y2, y3] = group {
+            let n = x
+                .len()
+                .min(y0.len())
+                .min(y1.len())
+                .min(y2.len())
+                .min(y3.len());
+            let (mut s0, mut s1, mut s2, mut s3) = (-0.0, -0.0, -0.0, -0.0);
+            for i in 0..n {
+                let xi = x[i];
+                s0 += xi * y0[i];
+                s1 += xi * y1[i];
+                s2 += xi * y2[i];
+                s3 += xi * y3[i];
+            }
+            out.extend([s0, s1, s2, s3]);
+        } else {
+            out.extend(
+                group
+                    .iter()
+                    .map(|y| x.iter().zip(y.iter()).map(|(a, b)| a * b).sum::<f64>()),
+            );
+        }
+    }
+    out
 }
 
 /// Symmetric pseudo-inverse with a relative eigenvalue floor.
