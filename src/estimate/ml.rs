@@ -624,6 +624,8 @@ impl<'a> Problem<'a> {
     }
 
     fn discretise(&self, p: &[f64], disc: Discretisation) -> Result<Discrete, MlError> {
+        // (`dense::product`: nalgebra's products to the bit, without matrixmultiply's packing.)
+        use crate::dense::product;
         let Discretisation { scheme, substeps } = disc;
         let (n, ne, q) = (self.n, self.ne, self.q);
         let mut M = self.model.M.clone();
@@ -643,10 +645,10 @@ impl<'a> Problem<'a> {
             });
         };
         let Minv = ch.inverse();
-        let A21 = -(&Minv * &K);
-        let A22 = -(&Minv * &C);
-        let Bp = &Minv * &self.model.Lp;
-        let Bf = -(&Minv * &self.model.Lc);
+        let A21 = -product(&Minv, &K);
+        let A22 = -product(&Minv, &C);
+        let Bp = product(&Minv, &self.model.Lp);
+        let Bf = -product(&Minv, &self.model.Lc);
         let h = self.dt / substeps as f64;
         let nu = ne + q;
         let ns = 2 * n;
@@ -711,8 +713,8 @@ impl<'a> Problem<'a> {
                         params: self.describe(p),
                     });
                 };
-                let Phi = &lu * (&I + &F * (0.5 * h));
-                let g1 = &lu * &B * h;
+                let Phi = product(&lu, &(&I + &F * (0.5 * h)));
+                let g1 = product(&lu, &B) * h;
                 let g2 = &g1 * 0.5;
                 (Phi, g1, g2)
             }
@@ -727,9 +729,9 @@ impl<'a> Problem<'a> {
             let mut c2 = DMatrix::zeros(ns, nu);
             let sf = substeps as f64;
             for k in (0..substeps).rev() {
-                c1 += &P * &g1;
-                c2 += &P * (&g1 * (k as f64 / sf) + &g2 * (1.0 / sf));
-                P = &Phi * P;
+                c1 += product(&P, &g1);
+                c2 += product(&P, &(&g1 * (k as f64 / sf) + &g2 * (1.0 / sf)));
+                P = product(&Phi, &P);
             }
             (P, c1, c2)
         } else {
