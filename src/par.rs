@@ -12,7 +12,13 @@
 //! p99 15–20 ms instead of 2 ms on 2 cores); `JOINTID_THREADS=1` keeps an identification on
 //! one core.
 
+use std::cell::Cell;
 use std::sync::atomic::{AtomicUsize, Ordering};
+
+thread_local! {
+    /// Whether this thread is running an item of a parallel [`map_with`].
+    static IN_PARALLEL_MAP: Cell<bool> = const { Cell::new(false) };
+}
 
 /// Threads for a parallel map: `JOINTID_THREADS` (≥ 1) or the available parallelism.
 pub fn threads() -> usize {
@@ -29,6 +35,18 @@ pub fn map<T: Sync, R: Send>(items: &[T], f: impl Fn(&T) -> R + Sync) -> Vec<R> 
     map_with(threads(), items, f)
 }
 
+/// [`map`], but one item after the other when called from an item of a parallel map (the
+/// cores are taken already: threads within threads would only contend for them). For the
+/// inner level of work that is also run on its own (the maximum-likelihood Jacobian: inside
+/// the parallel descents of its start grid, alone in its homotopy's stages).
+pub fn map_unless_nested<T: Sync, R: Send>(items: &[T], f: impl Fn(&T) -> R + Sync) -> Vec<R> {
+    if IN_PARALLEL_MAP.with(Cell::get) {
+        items.iter().map(f).collect()
+    } else {
+        map(items, f)
+    }
+}
+
 /// [`map`] on at most `threads` threads.
 pub fn map_with<T: Sync, R: Send>(
     threads: usize,
@@ -41,12 +59,14 @@ pub fn map_with<T: Sync, R: Send>(
     }
     let next = AtomicUsize::new(0);
     let work = || {
+        let was = IN_PARALLEL_MAP.with(|c| c.replace(true));
         let mut done = Vec::new();
         loop {
             let i = next.fetch_add(1, Ordering::Relaxed);
             let Some(item) = items.get(i) else { break };
             done.push((i, f(item)));
         }
+        IN_PARALLEL_MAP.with(|c| c.set(was));
         done
     };
     // The calling thread is one of the workers (it would only wait otherwise): one thread

@@ -995,8 +995,6 @@ fn jacobian(
             };
         }
     }
-    let mut cols = Vec::new();
-    let mut tr = Trace::default();
     let column = |tr: &Trace, tr2: Option<&Trace>, step: f64| -> Vec<f64> {
         let mut col = vec![0.0; len * m];
         for i in 0..len {
@@ -1009,63 +1007,55 @@ fn jacobian(
         }
         col
     };
-    for &j in active {
-        let b = prob.roles[j].1;
-        let typical = basis_rms_scale(prob, base, j, len);
-        let step = 1e-5 * pt.p[j].abs().max(typical.min(1e300));
-        let mut plus = pt.p.clone();
-        plus[j] += step;
-        let mut minus = pt.p.clone();
-        minus[j] -= step;
-        let linear = matches!(b, Basis::U | Basis::V | Basis::A);
-        let dp = if linear {
-            prob.discretise(&plus, disc.desc)?
-        } else {
-            prob.discretise(&pt.p, disc.desc)?
-        };
-        let dm = if linear {
-            prob.discretise(&minus, disc.desc)?
-        } else {
-            prob.discretise(&pt.p, disc.desc)?
-        };
-        let mut tr2 = Trace::default();
-        let ok1 = prob.simulate(&dp, &plus, &pt.z0, len, false, &mut tr);
-        let ok2 = prob.simulate(&dm, &minus, &pt.z0, len, false, &mut tr2);
-        if ok1.is_err() || ok2.is_err() {
-            cols.push(vec![0.0; len * m]);
-        } else {
-            cols.push(column(&tr, Some(&tr2), 2.0 * step));
-        }
+    // The parameters' central differences and the initial state's free response are
+    // independent: on every core unless already inside a parallel descent
+    // (`par::map_unless_nested`); each column is computed as one after the other would be.
+    let free_response = free_z0 && !prob.law_is_nonlinear() && disc.steps_per_sample == 1;
+    let parts: Vec<Option<usize>> = active
+        .iter()
+        .map(|&j| Some(j))
+        .chain(free_response.then_some(None))
+        .collect();
+    let computed =
+        crate::par::map_unless_nested(&parts, |part| -> Result<Vec<Vec<f64>>, MlError> {
+            let Some(j) = *part else {
+                return Ok(free_response_columns(prob, disc, len, sigma));
+            };
+            let b = prob.roles[j].1;
+            let typical = basis_rms_scale(prob, base, j, len);
+            let step = 1e-5 * pt.p[j].abs().max(typical.min(1e300));
+            let mut plus = pt.p.clone();
+            plus[j] += step;
+            let mut minus = pt.p.clone();
+            minus[j] -= step;
+            let linear = matches!(b, Basis::U | Basis::V | Basis::A);
+            let dp = if linear {
+                prob.discretise(&plus, disc.desc)?
+            } else {
+                prob.discretise(&pt.p, disc.desc)?
+            };
+            let dm = if linear {
+                prob.discretise(&minus, disc.desc)?
+            } else {
+                prob.discretise(&pt.p, disc.desc)?
+            };
+            let (mut tr, mut tr2) = (Trace::default(), Trace::default());
+            let ok1 = prob.simulate(&dp, &plus, &pt.z0, len, false, &mut tr);
+            let ok2 = prob.simulate(&dm, &minus, &pt.z0, len, false, &mut tr2);
+            Ok(vec![if ok1.is_err() || ok2.is_err() {
+                vec![0.0; len * m]
+            } else {
+                column(&tr, Some(&tr2), 2.0 * step)
+            }])
+        });
+    let mut cols = Vec::new();
+    for part in computed {
+        cols.extend(part?);
     }
-    if free_z0 && !prob.law_is_nonlinear() && disc.steps_per_sample == 1 {
-        // The outputs are affine in z₀ with the free response `y_i = H Φ^i z₀`: propagate the
-        // read-out rows `H Φ^i` (m × 2n per sample) instead of 2n simulations.
-        let n = prob.n;
-        let ns = 2 * n;
-        let mut W = DMatrix::zeros(m, ns);
-        for (k, st) in prob.model.stations.iter().enumerate() {
-            match st.quantity {
-                Quantity::Displacement => W[(k, st.dof)] = 1.0,
-                Quantity::Velocity => W[(k, n + st.dof)] = 1.0,
-                Quantity::Acceleration => W.row_mut(k).copy_from(&disc.Au.row(st.dof)),
-            }
-        }
-        let mut zc: Vec<Vec<f64>> = vec![vec![0.0; len * m]; ns];
-        for i in 0..len {
-            for k in 0..m {
-                if prob.measured[i * m + k].is_finite() {
-                    for (s, col) in zc.iter_mut().enumerate() {
-                        col[i * m + k] = W[(k, s)] / sigma[k];
-                    }
-                }
-            }
-            // (`dense::product`: nalgebra's `W Φ` to the bit, without its packing.)
-            W = crate::dense::product(&W, &disc.Phi);
-        }
-        cols.extend(zc);
-    } else if free_z0 {
+    if free_z0 && !free_response {
         let ns = 2 * prob.n;
         let nz = prob.n;
+        let mut tr = Trace::default();
         for s in 0..ns {
             let scale = if s < nz { prob.u_scale } else { prob.v_scale };
             let step = 1e-6 * (scale + pt.z0[s].abs());
@@ -1079,6 +1069,41 @@ fn jacobian(
         }
     }
     Ok(Jacobian { r, cols })
+}
+
+/// The outputs' sensitivities to the initial state `z₀` when they are affine in it (a law
+/// linear in the state, one map per sample): the free response `y_i = H Φ^i z₀`, its
+/// read-out rows `H Φ^i` (m × 2n per sample) propagated instead of 2n simulations; one
+/// column per entry of `z₀`, divided by the channel's noise level.
+fn free_response_columns(
+    prob: &Problem,
+    disc: &Discrete,
+    len: usize,
+    sigma: &[f64],
+) -> Vec<Vec<f64>> {
+    let (m, n) = (prob.m, prob.n);
+    let ns = 2 * n;
+    let mut W = DMatrix::zeros(m, ns);
+    for (k, st) in prob.model.stations.iter().enumerate() {
+        match st.quantity {
+            Quantity::Displacement => W[(k, st.dof)] = 1.0,
+            Quantity::Velocity => W[(k, n + st.dof)] = 1.0,
+            Quantity::Acceleration => W.row_mut(k).copy_from(&disc.Au.row(st.dof)),
+        }
+    }
+    let mut zc: Vec<Vec<f64>> = vec![vec![0.0; len * m]; ns];
+    for i in 0..len {
+        for k in 0..m {
+            if prob.measured[i * m + k].is_finite() {
+                for (s, col) in zc.iter_mut().enumerate() {
+                    col[i * m + k] = W[(k, s)] / sigma[k];
+                }
+            }
+        }
+        // (`dense::product`: nalgebra's `W Φ` to the bit, without its packing.)
+        W = crate::dense::product(&W, &disc.Phi);
+    }
+    zc
 }
 
 /// Normal equations of the column-scaled Jacobian.
