@@ -468,9 +468,28 @@ pub struct Problem<'a> {
     /// steps of the initial state.
     u_scale: f64,
     v_scale: f64,
+    /// The component model's damping and stiffness are positive semi-definite (see
+    /// [`Problem::passive`]).
+    passive_structure: bool,
 }
 
 impl<'a> Problem<'a> {
+    /// Whether the structure with the connection law `p` is passive: damping and stiffness
+    /// positive semi-definite — the component's are, and no `v` or `u` term is negative —
+    /// with a positive definite mass (which [`Problem::discretise`] requires). Its
+    /// eigenvalues then have no positive real part (`λ²m + λc + k = 0` with `m > 0`,
+    /// `c, k ≥ 0`), so neither the exact map nor the trapezoidal (Newmark) one, nor their
+    /// powers, has a spectral radius above 1: the stability test of a descent's step
+    /// needs no eigenvalues. (`false` only means "not shown passive this way".)
+    fn passive(&self, p: &[f64]) -> bool {
+        self.passive_structure
+            && self
+                .roles
+                .iter()
+                .zip(p)
+                .all(|(&(_, b), &v)| !matches!(b, Basis::U | Basis::V) || v >= 0.0)
+    }
+
     pub fn new(setup: &'a Setup, model: &'a Model, data: &TestData) -> Result<Self, MlError> {
         for conn in &setup.connections {
             if let Some(b) = conn
@@ -559,7 +578,14 @@ impl<'a> Problem<'a> {
         let a = rms_of(Quantity::Acceleration);
         let v_scale = v.or(u.map(|u| u / dt)).or(a.map(|a| a * dt)).unwrap_or(1.0);
         let u_scale = u.unwrap_or(v_scale * dt);
+        // (Symmetric to the bit, finite, no negative eigenvalue.)
+        let psd = |a: &DMatrix<f64>| {
+            a.iter().all(|x| x.is_finite())
+                && *a == a.transpose()
+                && a.clone().symmetric_eigen().eigenvalues.min() >= 0.0
+        };
         Ok(Self {
+            passive_structure: psd(&model.C) && psd(&model.K),
             needs_acc,
             u_scale,
             v_scale,
@@ -1267,9 +1293,13 @@ fn fit_stage(
             // more than tenfold over the record (a negative stiffness beyond the supports,
             // say) is not a candidate. A slightly negative damping of an undamped truth is.
             // (Tested only for a step that lowers the cost: every refusal above does the
-            // same, and the eigenvalues are the dearest of the three tests.)
+            // same, and the eigenvalues are the dearest of the three tests; none for a
+            // passive structure, [`Problem::passive`].)
             let steps = (prob.samples * d.substeps) as f64;
-            let unstable = || crate::estimate::spectral_radius(&cd.Phi) > 1.0 + 10f64.ln() / steps;
+            let unstable = || {
+                !prob.passive(&cand.p)
+                    && crate::estimate::spectral_radius(&cd.Phi) > 1.0 + 10f64.ln() / steps
+            };
             if lc < l && !unstable() {
                 *pt = cand;
                 disc = cd;
