@@ -156,14 +156,28 @@ pub fn dot(a: &[f64], x: &[f64]) -> f64 {
 /// # Panics
 /// When the inner dimensions differ, as nalgebra does.
 pub fn product(a: &DMatrix<f64>, b: &DMatrix<f64>) -> DMatrix<f64> {
+    let mut out = DMatrix::zeros(a.nrows(), b.ncols());
+    product_into(&mut out, a, b);
+    out
+}
+
+/// [`product`] written into `out` (resized to `A`'s rows × `B`'s columns when it has another
+/// shape): the same bits, without allocating when `out` already has the shape (a product
+/// per sample, as the maximum-likelihood free response's `W Φ`).
+///
+/// # Panics
+/// When the inner dimensions differ, as nalgebra does.
+pub fn product_into(out: &mut DMatrix<f64>, a: &DMatrix<f64>, b: &DMatrix<f64>) {
     let (rows, inner) = a.shape();
     assert_eq!(inner, b.nrows(), "product: dimensions mismatch");
     let cols = b.ncols();
+    if out.shape() != (rows, cols) {
+        *out = DMatrix::zeros(rows, cols);
+    }
     const SMALL_DIM: usize = 5;
     if rows > SMALL_DIM && cols > SMALL_DIM && inner > SMALL_DIM {
         #[cfg(target_arch = "x86_64")]
         if inner <= DGEMM_KC && fused_dgemm_kernel() {
-            let mut out = DMatrix::zeros(rows, cols);
             // SAFETY: the features `fused_dgemm_kernel` checked are the kernel's.
             unsafe {
                 product_fused(
@@ -175,11 +189,11 @@ pub fn product(a: &DMatrix<f64>, b: &DMatrix<f64>) -> DMatrix<f64> {
                     out.as_mut_slice(),
                 )
             };
-            return out;
+            return;
         }
-        return a * b;
+        *out = a * b;
+        return;
     }
-    let mut out = DMatrix::zeros(rows, cols);
     for j in 0..cols {
         let start = j * inner;
         gemv_slices(
@@ -189,7 +203,6 @@ pub fn product(a: &DMatrix<f64>, b: &DMatrix<f64>) -> DMatrix<f64> {
             Op::Set,
         );
     }
-    out
 }
 
 /// matrixmultiply's block of the inner dimension (`D_KC`): a longer product is summed in
@@ -788,6 +801,10 @@ mod tests {
             let got = product(&a, &b);
             let bits = |m: &DMatrix<f64>| m.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&got), bits(&want), "{rows}×{inner} · {inner}×{cols}");
+            // Into a buffer that held something else (every entry is written).
+            let mut reused = DMatrix::from_element(rows, cols, f64::NAN);
+            product_into(&mut reused, &a, &b);
+            assert_eq!(bits(&reused), bits(&want), "into {rows}×{inner} · {inner}×{cols}");
         }
     }
 

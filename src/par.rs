@@ -35,6 +35,27 @@ pub fn map<T: Sync, R: Send>(items: &[T], f: impl Fn(&T) -> R + Sync) -> Vec<R> 
     map_with(threads(), items, f)
 }
 
+/// Sets [`IN_PARALLEL_MAP`] for its life and puts the former value back when dropped, also
+/// when an item panics (`jointid live` catches a window's panic and keeps its worker thread,
+/// whose later maps must not take themselves for nested).
+struct InParallelMap {
+    was: bool,
+}
+
+impl InParallelMap {
+    fn enter() -> Self {
+        Self {
+            was: IN_PARALLEL_MAP.with(|c| c.replace(true)),
+        }
+    }
+}
+
+impl Drop for InParallelMap {
+    fn drop(&mut self) {
+        IN_PARALLEL_MAP.with(|c| c.set(self.was));
+    }
+}
+
 /// [`map`], but one item after the other when called from an item of a parallel map (the
 /// cores are taken already: threads within threads would only contend for them). For the
 /// inner level of work that is also run on its own (the maximum-likelihood Jacobian: inside
@@ -59,14 +80,13 @@ pub fn map_with<T: Sync, R: Send>(
     }
     let next = AtomicUsize::new(0);
     let work = || {
-        let was = IN_PARALLEL_MAP.with(|c| c.replace(true));
+        let _inside = InParallelMap::enter();
         let mut done = Vec::new();
         loop {
             let i = next.fetch_add(1, Ordering::Relaxed);
             let Some(item) = items.get(i) else { break };
             done.push((i, f(item)));
         }
-        IN_PARALLEL_MAP.with(|c| c.set(was));
         done
     };
     // The calling thread is one of the workers (it would only wait otherwise): one thread

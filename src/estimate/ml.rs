@@ -1121,6 +1121,7 @@ fn free_response_columns(
         }
     }
     let mut zc: Vec<Vec<f64>> = vec![vec![0.0; len * m]; ns];
+    let mut next = DMatrix::zeros(m, ns);
     for i in 0..len {
         for k in 0..m {
             if prob.measured[i * m + k].is_finite() {
@@ -1129,8 +1130,9 @@ fn free_response_columns(
                 }
             }
         }
-        // (`dense::product`: nalgebra's `W Φ` to the bit, without its packing.)
-        W = crate::dense::product(&W, &disc.Phi);
+        // (`dense::product_into`: nalgebra's `W Φ` to the bit, without its packing.)
+        crate::dense::product_into(&mut next, &W, &disc.Phi);
+        std::mem::swap(&mut W, &mut next);
     }
     zc
 }
@@ -1221,10 +1223,11 @@ fn pinv_sym(A: &DMatrix<f64>, rel: f64) -> DMatrix<f64> {
 /// this: 0.01 of a unit of log-likelihood, a hundredth of a standard error's worth.
 const CONVERGED_DECREMENT: f64 = 0.02;
 
-/// The same for the descents whose only use is to compare their costs (the start grid and
-/// its finalists, the early choice of the discretisation, [`descend`]): the remaining
-/// decrease is then under half a unit of log-likelihood, where the costs they compare differ
-/// by tens to thousands of units. Why: on a short prefix a descent in a basin that is not
+/// The same for the descents that choose a start (the start grid and its finalists, the
+/// early choice of the discretisation, [`descend`]): their costs are compared, and the
+/// chosen end point only starts the homotopy, which refines it to [`CONVERGED_DECREMENT`].
+/// The remaining decrease is then under half a unit of log-likelihood, where the costs they
+/// compare differ by tens to thousands of units. Why: on a short prefix a descent in a basin that is not
 /// the truth's (a large-residual fit, where Gauss–Newton converges slowly) zig-zagged for
 /// its last 30–40 iterations with the decrement at 0.03–0.3 and the cost moving by
 /// 0.001–0.01 per step: the start grid's finalists and the early choice took 47–50
@@ -1355,18 +1358,38 @@ pub fn identify_ml(
             needed,
         });
     }
-    // The fit from both start settings (on every core), the likelier answer kept: see
-    // [`START_PREFIXES`].
-    let runs = crate::par::map(&START_PREFIXES, |&(start_stages, early_stages)| {
-        fit_from_start(&prob, setup, opts, needed, start_stages, early_stages)
-    });
+    // The fit from each start setting, the likelier answer kept: see [`START_PREFIXES`].
+    // (One after the other: each uses every core in its grid, its early choice and its
+    // Jacobians; run side by side they would only share them.) A setting whose prefixes
+    // come out as an earlier one's on this record, or a fit with neither a start grid (no
+    // `u` term) nor an early choice (one discretisation), would repeat that fit: skipped.
+    let has_grid = prob.roles.iter().any(|(_, b)| matches!(b, Basis::U));
+    let has_choice = opts.select_discretisation
+        && setup.newmark.gamma == 0.5
+        && setup.newmark.beta == 0.25
+        && opts.max_newmark_substeps >= 1;
+    let mut settings: Vec<(usize, usize)> = Vec::new();
+    for &(start_stages, early_stages) in &START_PREFIXES {
+        let lengths = |stages: usize| {
+            (stages * opts.first_stage_samples)
+                .max(needed)
+                .min(prob.samples)
+        };
+        let seen = settings.iter().any(|&(a, b)| {
+            (!has_grid || lengths(a) == lengths(start_stages))
+                && (!has_choice || lengths(b) == lengths(early_stages))
+        });
+        if !seen {
+            settings.push((start_stages, early_stages));
+        }
+    }
     let mut best: Option<(f64, StartFit)> = None;
     let mut first_error = None;
-    let mut iterations = 0;
-    for run in runs {
-        match run.and_then(|r| Ok((pt_cost(&prob, &r.pt, r.d)?, r))) {
+    for (start_stages, early_stages) in settings {
+        let run = fit_from_start(&prob, setup, opts, needed, start_stages, early_stages)
+            .and_then(|r| Ok((pt_cost(&prob, &r.pt, r.d)?, r)));
+        match run {
             Ok((cost, r)) => {
-                iterations += r.iterations;
                 if best.as_ref().is_none_or(|(c, _)| cost < *c) {
                     best = Some((cost, r));
                 }
@@ -1376,6 +1399,7 @@ pub fn identify_ml(
             }
         }
     }
+    // (At least one setting always runs, so `first_error` is set when `best` is not.)
     let Some((
         _,
         StartFit {
@@ -1384,7 +1408,7 @@ pub fn identify_ml(
             disc_error,
             compared,
             stages,
-            ..
+            iterations,
         },
     )) = best
     else {
@@ -1817,9 +1841,10 @@ fn determined(
 
 /// A force-scaled magnitude of parameter `j`: excitation RMS / RMS of its basis function
 /// along the current simulation (the force it would carry at the excitation's size).
-/// Descends from `start` over the `active` parameters (at most `iterations`) on the first
-/// `len` samples with discretisation `d`: the cost there and the point reached, or `None`
-/// when the descent or the cost fails (a diverging start is skipped, not an error).
+/// Descends from `start` over the `active` parameters (at most `iterations`, until the
+/// decrement is below [`SCREEN_DECREMENT`]) on the first `len` samples with discretisation
+/// `d`: the cost there and the point reached, or `None` when the descent or the cost fails
+/// (a diverging start is skipped, not an error).
 fn descend(
     prob: &Problem,
     start: Point,
