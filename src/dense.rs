@@ -804,7 +804,11 @@ mod tests {
             // Into a buffer that held something else (every entry is written).
             let mut reused = DMatrix::from_element(rows, cols, f64::NAN);
             product_into(&mut reused, &a, &b);
-            assert_eq!(bits(&reused), bits(&want), "into {rows}×{inner} · {inner}×{cols}");
+            assert_eq!(
+                bits(&reused),
+                bits(&want),
+                "into {rows}×{inner} · {inner}×{cols}"
+            );
         }
     }
 
