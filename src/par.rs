@@ -123,6 +123,32 @@ pub fn phase(name: &str, since: std::time::Instant) {
 mod tests {
     use super::*;
 
+    /// Inside a parallel map's item, `map_unless_nested` runs one item after the other (the
+    /// same results); outside it, and after a map whose item panicked, it is parallel again
+    /// (the flag is put back by a drop guard, as `jointid live`, which catches a window's
+    /// panic and keeps its thread, needs).
+    #[test]
+    fn the_nested_flag_is_set_inside_a_parallel_map_and_restored_after_a_panic() {
+        let nested = || IN_PARALLEL_MAP.with(Cell::get);
+        assert!(!nested());
+        let seen = map_with(2, &[0u32, 1, 2, 3], |x| {
+            let inner = map_unless_nested(&[1u32, 2], |y| x * 10 + y);
+            (nested(), inner)
+        });
+        assert!(seen.iter().all(|(inside, _)| *inside));
+        assert_eq!(seen[3].1, vec![31, 32]);
+        assert!(!nested());
+        let caught = std::panic::catch_unwind(|| {
+            // Every item panics, so the calling thread's own share does too.
+            map_with(2, &[0u32, 1], |_| -> u32 { panic!("planted panic") })
+        });
+        assert!(caught.is_err());
+        assert!(
+            !nested(),
+            "the calling thread must not stay marked as inside a map"
+        );
+    }
+
     /// The parallel map returns what the sequential map returns, in the items' order.
     #[test]
     fn parallel_map_equals_sequential_map() {

@@ -43,8 +43,8 @@
 //! is grown over prefixes of the record, doubling from [`MlOptions::first_stage_samples`]:
 //! each prefix's minimum lies well inside the next one's valley. The basin it grows from is
 //! chosen on a short prefix by a start grid; no one prefix length chooses it right on every
-//! record, so the whole fit runs from two (`START_PREFIXES`, in parallel) and the answer is
-//! the one of higher likelihood on the whole record.
+//! record, so the whole fit runs from two (`START_PREFIXES`, one after the other) and the
+//! answer is the one of higher likelihood on the whole record.
 //!
 //! # Scope (measured, see ACCURACY.md)
 //! Laws linear in the state (`u`, `v`, `a`, `const`) on the two-beam problem: right on data
@@ -483,7 +483,10 @@ impl<'a> Problem<'a> {
     /// eigenvalues then have no positive real part (`λ²m + λc + k = 0` with `m > 0`,
     /// `c, k ≥ 0`), so neither the exact map nor the trapezoidal (Newmark) one, nor their
     /// powers, has a spectral radius above 1: the stability test of a descent's step
-    /// needs no eigenvalues. (`false` only means "not shown passive this way".)
+    /// needs no eigenvalues. (`false` only means "not shown passive this way".) The same
+    /// decisions as the eigenvalues', but where the Schur form of a rigid-body mode's Jordan
+    /// block at 1 reads a radius of 1 + ~2e-7 (no joint stiffness): that test would refuse
+    /// such a step on records of more than ~10⁷ sub-steps, this one does not.
     fn passive(&self, p: &[f64]) -> bool {
         self.passive_structure
             && self
@@ -1227,9 +1230,9 @@ const CONVERGED_DECREMENT: f64 = 0.02;
 /// early choice of the discretisation, [`descend`]): their costs are compared, and the
 /// chosen end point only starts the homotopy, which refines it to [`CONVERGED_DECREMENT`].
 /// The remaining decrease is then under half a unit of log-likelihood, where the costs they
-/// compare differ by tens to thousands of units. Why: on a short prefix a descent in a basin that is not
-/// the truth's (a large-residual fit, where Gauss–Newton converges slowly) zig-zagged for
-/// its last 30–40 iterations with the decrement at 0.03–0.3 and the cost moving by
+/// compare differ by tens to thousands of units. Why: on a short prefix a descent in a
+/// basin that is not the truth's (a large-residual fit, where Gauss–Newton converges
+/// slowly) zig-zagged for its last 30–40 iterations with the decrement at 0.03–0.3 and the cost moving by
 /// 0.001–0.01 per step: the start grid's finalists and the early choice took 47–50
 /// iterations (their limit) and most of an identification's time on the benchmark record.
 /// The whole-record fits that make the answer keep [`CONVERGED_DECREMENT`].
@@ -1364,17 +1367,10 @@ pub fn identify_ml(
     // come out as an earlier one's on this record, or a fit with neither a start grid (no
     // `u` term) nor an early choice (one discretisation), would repeat that fit: skipped.
     let has_grid = prob.roles.iter().any(|(_, b)| matches!(b, Basis::U));
-    let has_choice = opts.select_discretisation
-        && setup.newmark.gamma == 0.5
-        && setup.newmark.beta == 0.25
-        && opts.max_newmark_substeps >= 1;
+    let has_choice = discretisation_candidates(setup, opts).len() > 1;
+    let lengths = |stages: usize| prefix_len(stages, opts, needed, prob.samples);
     let mut settings: Vec<(usize, usize)> = Vec::new();
     for &(start_stages, early_stages) in &START_PREFIXES {
-        let lengths = |stages: usize| {
-            (stages * opts.first_stage_samples)
-                .max(needed)
-                .min(prob.samples)
-        };
         let seen = settings.iter().any(|&(a, b)| {
             (!has_grid || lengths(a) == lengths(start_stages))
                 && (!has_choice || lengths(b) == lengths(early_stages))
@@ -1419,6 +1415,33 @@ pub fn identify_ml(
     };
     let (fit, trace) = finish(&prob, pt, d, disc_error, compared, opts, stages, iterations)?;
     Ok((fit, trace))
+}
+
+/// Candidate discretisations: the exact map first, then (when the setup's scheme is Newmark
+/// average acceleration and the choice is on) that scheme with 1, 2, 4, … sub-steps up to
+/// [`MlOptions::max_newmark_substeps`] — what a simulation may have used.
+fn discretisation_candidates(setup: &Setup, opts: &MlOptions) -> Vec<Discretisation> {
+    let mut candidates = vec![Discretisation {
+        scheme: Scheme::Exact,
+        substeps: 1,
+    }];
+    if opts.select_discretisation && setup.newmark.gamma == 0.5 && setup.newmark.beta == 0.25 {
+        let mut s = 1;
+        while s <= opts.max_newmark_substeps {
+            candidates.push(Discretisation {
+                scheme: Scheme::Newmark,
+                substeps: s,
+            });
+            s *= 2;
+        }
+    }
+    candidates
+}
+
+/// The first `stages` first-stage lengths of the record ([`MlOptions::first_stage_samples`]
+/// each), at least `needed` samples and at most the record.
+fn prefix_len(stages: usize, opts: &MlOptions, needed: usize, samples: usize) -> usize {
+    (stages * opts.first_stage_samples).max(needed).min(samples)
 }
 
 /// What [`fit_from_start`] found: the point, the discretisation, the measured effect of the
@@ -1485,21 +1508,10 @@ fn fit_from_start(
     } else {
         vec![&all]
     };
-    // Candidate discretisations: the exact map, and Newmark average acceleration with 1, 2,
-    // 4, … sub-steps (what a simulation may have used). The data pick one by likelihood,
-    // first on the first prefix (a Newmark simulation's high modes dominate its velocities,
-    // so the wrong family hides the joint), then again on the whole record.
-    let mut candidates = vec![exact];
-    if opts.select_discretisation && setup.newmark.gamma == 0.5 && setup.newmark.beta == 0.25 {
-        let mut s = 1;
-        while s <= opts.max_newmark_substeps {
-            candidates.push(Discretisation {
-                scheme: Scheme::Newmark,
-                substeps: s,
-            });
-            s *= 2;
-        }
-    }
+    // The data pick the discretisation by likelihood, first on the first prefix (a Newmark
+    // simulation's high modes dominate its velocities, so the wrong family hides the
+    // joint), then again on the whole record.
+    let candidates = discretisation_candidates(setup, opts);
     let clock = std::time::Instant::now();
     let debug = std::env::var_os("JOINTID_ML_DEBUG").is_some();
     let mut exact = exact;
@@ -1512,9 +1524,7 @@ fn fit_from_start(
     //    over a short prefix.
     let mut fitted_len = 0;
     {
-        let len = (start_stages * opts.first_stage_samples)
-            .max(needed)
-            .min(n_all);
+        let len = prefix_len(start_stages, opts, needed, n_all);
         for &j in linear
             .iter()
             .filter(|&&j| matches!(prob.roles[j].1, Basis::U))
@@ -1583,9 +1593,7 @@ fn fit_from_start(
         }
     }
     if candidates.len() > 1 {
-        let len = (early_stages * opts.first_stage_samples)
-            .max(needed)
-            .min(n_all);
+        let len = prefix_len(early_stages, opts, needed, n_all);
         let best = crate::par::map(&candidates, |&d| {
             let (c, _) = descend(
                 prob,
@@ -2268,4 +2276,77 @@ pub fn predict(
             params: prob.describe(params),
         })?;
     Ok(tr)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The paper's two-beam setup with the connection law `u, v`.
+    fn spring_uv() -> Setup {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("recordings/two-beam-spring.toml");
+        let text: String = std::fs::read_to_string(path)
+            .expect("shipped setup")
+            .lines()
+            .map(|l| match l.trim_start() {
+                t if t.starts_with("basis") => "basis = [\"u\", \"v\"]\n".to_string(),
+                t if t.starts_with("initial") => "initial = [0.0, 0.0]\n".to_string(),
+                t if t.starts_with("truth") => "truth = [3.0e5, 0.0]\n".to_string(),
+                _ => format!("{l}\n"),
+            })
+            .collect();
+        Setup::from_toml(&text, "spring_uv").expect("setup")
+    }
+
+    /// `Problem::passive` lets a descent's step skip the eigenvalues only where they cannot
+    /// exceed 1: for stiffness and damping terms ≥ 0 the spectral radius of the exact map and
+    /// of Newmark ×1 and ×4 is at most 1 (to round-off: 1 + 2.4e-7 with no joint stiffness,
+    /// where a rigid-body mode makes a Jordan block at 1); a negative stiffness beyond the
+    /// supports, which makes the structure unstable, is not taken for passive (nor is any
+    /// negative term).
+    #[test]
+    fn a_passive_law_has_no_eigenvalue_outside_the_unit_circle() {
+        let setup = spring_uv();
+        let model = Model::for_identification(&setup).expect("model");
+        let n = 50;
+        let data = TestData {
+            samples: (0..n as u64).collect(),
+            t_ns: (0..n as u64).map(|i| i * 100_000).collect(),
+            excitation: vec![vec![0.0]; n],
+            response: vec![vec![1e-3; model.stations.len()]; n],
+        };
+        let prob = Problem::new(&setup, &model, &data).expect("problem");
+        let schemes = [
+            Discretisation {
+                scheme: Scheme::Exact,
+                substeps: 1,
+            },
+            Discretisation {
+                scheme: Scheme::Newmark,
+                substeps: 1,
+            },
+            Discretisation {
+                scheme: Scheme::Newmark,
+                substeps: 4,
+            },
+        ];
+        for p in [[0.0, 0.0], [3e5, 0.0], [3e7, 0.0], [3e5, 50.0], [0.0, 1e3]] {
+            assert!(prob.passive(&p), "{p:?}");
+            for d in schemes {
+                let rho = crate::estimate::spectral_radius(&prob.discretise(&p, d).unwrap().Phi);
+                assert!(rho <= 1.0 + 1e-6, "{p:?} {d}: spectral radius {rho}");
+            }
+        }
+        for p in [[-1e5, 0.0], [3e5, -1e-3]] {
+            assert!(!prob.passive(&p), "{p:?}");
+        }
+        // A stiffness negative enough to overcome the supports: unstable, so it must not be
+        // taken for passive (the test it replaces would refuse it).
+        let unstable = [-1e12, 0.0];
+        let rho =
+            crate::estimate::spectral_radius(&prob.discretise(&unstable, schemes[0]).unwrap().Phi);
+        assert!(rho > 1.0 + 1e-3, "spectral radius {rho}");
+        assert!(!prob.passive(&unstable));
+    }
 }
