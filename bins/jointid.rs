@@ -161,6 +161,12 @@ enum Command {
         /// they do not hold — else none; 0 switches it off (README, Accuracy).
         #[arg(long, value_name = "N")]
         bootstrap: Option<usize>,
+        /// The record starts in motion (cut from a running test): estimate its start state
+        /// even when its first sample reads like rest (at high noise it can; the whiteness
+        /// note says when the record may start in motion). Laws linear in the state
+        /// (`--estimator ml`) always estimate it.
+        #[arg(long)]
+        in_motion: bool,
         /// Write SVG plots here: force–deformation loops with the identified law, measured
         /// against predicted response with fit %, parameters per pass.
         #[arg(long, value_name = "DIR")]
@@ -384,6 +390,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             no_refine,
             bootstrap,
             plots,
+            in_motion,
         } => {
             let req = ReplayRequest {
                 recording,
@@ -400,6 +407,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 no_refine,
                 plots,
                 bootstrap,
+                in_motion,
             };
             let bar = ProgressBar::new(0);
             bar.set_style(

@@ -240,6 +240,9 @@ pub struct ReplayRequest {
     /// Replicates of the parametric bootstrap of a prediction-error answer (`--bootstrap N`,
     /// 0: none; `None`: automatic, see `IdentifyOptions::bootstrap`).
     pub bootstrap: Option<usize>,
+    /// The record starts in motion (`--in-motion`: cut from a running test): its start state
+    /// is estimated whatever its first sample reads (`IdentifyOptions::in_motion`).
+    pub in_motion: bool,
 }
 
 /// What `replay` found.

@@ -464,6 +464,7 @@ pub fn run(
         opts.output_error = false;
     }
     opts.bootstrap = req.bootstrap;
+    opts.in_motion = req.in_motion;
     if let Some(l) = req.forgetting {
         if !(l > 0.0 && l <= 1.0) {
             return Err(AppError::BadOption {
