@@ -2408,32 +2408,27 @@ fn finish_with_output_error(
                 };
                 // A misfit from a start in motion that the first sample did not show: the
                 // free run cannot start elsewhere, so `identify` runs again with the start
-                // state estimated (see `pem::motion_behind_misfit`). Only when the start
-                // state accounts for the misfit: what the innovations keep after its refit
-                // is within the misfit rule (a model that is not the structure — 5 % off in
-                // its beams' EI — also passes the test, as a start state fits a little of
-                // any misfit: there it removed 4 % of the innovation cost, which stayed
-                // ~41× the noise; on a record cut in motion 60 %, down to 0.99×).
-                //
-                // Residuals that are not white within the cost rule ask the same test, but
-                // only for the note: at 100 % noise a record cut in motion misfits within
-                // the cost rule and was answered from rest up to 72 errors off, its
-                // whiteness note the only sign; switched on that test alone, 7 of 15
-                // records at rest (Coulomb, 64-sub-step data, 100 % noise: the model's
-                // discretisation misfit, which a start state absorbs in part) went the
-                // in-motion way and one was refused, and an accelerometer-only record at
-                // rest came out −94 % ± 1.1 % (ACCURACY.md, thirty-fourth session). The
-                // note names the figure and `--in-motion`, which the user can confirm.
-                let misfit = r.report.cost_end > ANSWER_MISFIT_COST;
-                let motion = if r.report.accepted
-                    && (misfit || not_white.is_some())
+                // state estimated (see `pem::motion_behind_misfit`, which tests at the
+                // answer's model sub-steps and again at the likeliest). Asked when the
+                // answer misfits (normalised cost above the misfit rule's 2) or its
+                // residuals are not white: at 100 % noise a record cut in motion misfits
+                // within the cost rule (the start's free vibration is small against the
+                // noise) and was answered from rest up to 72 errors off, its whiteness note
+                // the only sign (ACCURACY.md, thirty-fourth session). Taken only when the
+                // start state accounts for the misfit: what the innovations keep after its
+                // refit is within the misfit rule (a model that is not the structure — 5 %
+                // off in its beams' EI — also passes the test, as a start state fits a
+                // little of any misfit: there it removed 4 % of the innovation cost, which
+                // stayed ~41× the noise; on a record cut in motion 60 %, down to 0.99×).
+                let observations = (data.len() * sigma.len()).max(1) as f64;
+                if r.report.accepted
+                    && (r.report.cost_end > ANSWER_MISFIT_COST || not_white.is_some())
                     && !by_prediction_error
                     && opts.start_motion.is_none()
                     && opts.starts_mid_record.is_none()
                     && !opts.in_motion
                     && model.has_dense()
-                {
-                    pem::motion_behind_misfit(
+                    && let Some(m) = pem::motion_behind_misfit(
                         setup,
                         model,
                         data,
@@ -2441,24 +2436,13 @@ fn finish_with_output_error(
                         &r.values,
                         r.report.substeps,
                     )
-                } else {
-                    None
-                };
-                let observations = (data.len() * sigma.len()).max(1) as f64;
-                if let Some(m) = motion.as_ref().filter(|m| {
-                    misfit && m.level - m.reduction / observations <= ANSWER_MISFIT_COST
-                }) {
-                    result.motion_in_record = Some(*m);
+                    && m.level - m.reduction / observations <= ANSWER_MISFIT_COST
+                {
+                    result.motion_in_record = Some(m);
                     return;
                 }
                 if let Some(note) = not_white {
-                    result.notes.push(match motion.filter(|_| !misfit) {
-                        Some(m) => format!(
-                            "{note}; a start state refitted to an observer's innovations at the answer ({} model sub-steps) removes {:.1} from their whitened cost, beyond the limit {:.1} for a record at rest: the record may start in motion (cut from a running test, its first sample reading like rest at this noise) — if it does, replay it with `--in-motion`, which estimates the start state (a model's own misfit can pass this test too)",
-                            m.substeps, m.reduction, m.limit
-                        ),
-                        None => note,
-                    });
+                    result.notes.push(note);
                 }
                 if r.report.accepted {
                     for (j, p) in last.parameters.iter_mut().enumerate() {
