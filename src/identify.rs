@@ -2408,8 +2408,9 @@ fn finish_with_output_error(
                 };
                 // A misfit from a start in motion that the first sample did not show: the
                 // free run cannot start elsewhere, so `identify` runs again with the start
-                // state estimated (see `pem::motion_behind_misfit`, which tests at the
-                // answer's model sub-steps and again at the likeliest). Asked when the
+                // state estimated (see `pem::motion_behind_misfit`; asked by the whiteness
+                // test alone, its finding is seen again at the likeliest model sub-steps
+                // before it is called motion, as the prediction error's is). Asked when the
                 // answer misfits (normalised cost above the misfit rule's 2) or its
                 // residuals are not white: at 100 % noise a record cut in motion misfits
                 // within the cost rule (the start's free vibration is small against the
@@ -2421,8 +2422,9 @@ fn finish_with_output_error(
                 // little of any misfit: there it removed 4 % of the innovation cost, which
                 // stayed ~41× the noise; on a record cut in motion 60 %, down to 0.99×).
                 let observations = (data.len() * sigma.len()).max(1) as f64;
+                let misfit = r.report.cost_end > ANSWER_MISFIT_COST;
                 if r.report.accepted
-                    && (r.report.cost_end > ANSWER_MISFIT_COST || not_white.is_some())
+                    && (misfit || not_white.is_some())
                     && !by_prediction_error
                     && opts.start_motion.is_none()
                     && opts.starts_mid_record.is_none()
@@ -2435,6 +2437,7 @@ fn finish_with_output_error(
                         sigma,
                         &r.values,
                         r.report.substeps,
+                        !misfit,
                     )
                     && m.level - m.reduction / observations <= ANSWER_MISFIT_COST
                 {
