@@ -82,7 +82,7 @@ pub enum IdentifyError {
     TooShort(usize),
     /// The record does not start at rest, which the Kalman and paper pipelines assume.
     #[error(
-        "the record does not start at rest: at its first sample (sample {sample}) the {channels} displacement and velocity channels read Σ(value/noise std)² = {chi2:.1} (limit {chi2_limit:.1}, a false alarm on a record at rest has probability 2e-9), the largest sensor `{sensor}` {value:.4e}, {ratio:.1}× its noise std {sigma:.3e} (limit {} for one channel); this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a friction (`sign`) term), and on records cut from a test in motion such a start was up to millions of standard errors off (ACCURACY.md, \"Records that start in motion\"); start the record before the excitation, remove a static offset from a displacement channel, identify with `--no-refine` (the Kalman passes estimate the initial state) or, for a law linear in the state, with `--estimator ml`",
+        "the record does not start at rest: at its first sample (sample {sample}) the {channels} displacement and velocity channels read Σ(value/noise std)² = {chi2:.1} (limit {chi2_limit:.1}, a false alarm on a record at rest has probability 2e-9), the largest sensor `{sensor}` {value:.4e}, {ratio:.1}× its noise std {sigma:.3e} (limit {} for one channel); this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a friction (`sign`) term), and on records cut from a test in motion such a start was up to millions of standard errors off (ACCURACY.md, \"Records that start in motion\"); start the record before the excitation, remove a static offset from a displacement channel, identify with `--estimator kalman --no-refine` (the Kalman passes estimate the initial state) or, for a law linear in the state, with `--estimator ml`",
         MAX_START_NOISE_RATIO
     )]
     NotAtRest {
@@ -108,7 +108,7 @@ pub enum IdentifyError {
     SaidInMotion { sample: u64 },
     /// A start in motion seen by the whole record's innovations, not by its first sample.
     #[error(
-        "the record starts in motion although its first sample reads like rest: a start state refitted to an observer's innovations at the answer ({substeps} model sub-steps) removes {reduction:.1} from their whitened cost, beyond the limit {limit:.1}; this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a friction (`sign`) term), and no option makes it start elsewhere when the first sample reads like rest (`--no-refine` would run the passes from rest too); record from rest (start the acquisition before the excitation) or cut the record where the structure is at rest, or, for a law linear in the state, identify with `--estimator ml` (it estimates the initial state)"
+        "the record starts in motion although its first sample reads like rest: a start state refitted to an observer's innovations at the answer ({substeps} model sub-steps) removes {reduction:.1} from their whitened cost, beyond the limit {limit:.1}; this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a friction (`sign`) term), so it cannot start elsewhere; `--in-motion --estimator kalman --no-refine` estimates the start state with the Kalman passes alone, or record from rest (start the acquisition before the excitation) or cut the record where the structure is at rest, or, for a law linear in the state, identify with `--estimator ml` (it estimates the initial state)"
     )]
     MotionInRecord {
         reduction: f64,
@@ -1440,7 +1440,7 @@ fn identify_once(
                     substeps,
                 } => {
                     format!(
-                        "the record starts in motion although its first sample reads like rest: a start state refitted to the innovations of the prediction error's observer ({} model sub-steps, run from rest at its refined values) removed {:.1} from their whitened cost, beyond the limit {:.1} (χ² of its {} degrees of freedom at 1e-3, × {:.2}, that run's normalised cost), so the identification was run again with the start state estimated (the passes are reported twice); a model that misfits the structure's free vibration can pass this test too, which is why it is repeated at the likeliest model sub-steps before it is called motion (ACCURACY.md, \"A start in motion seen by the whole record\")",
+                        "the record starts in motion although its first sample reads like rest: a start state refitted to the innovations of the prediction error's observer ({} model sub-steps, run from rest at its refined values) removed {:.1} from their whitened cost, beyond the limit {:.1} (χ² of its {} degrees of freedom at 1e-3, × {:.2}, that run's normalised cost), so the identification was run again with the start state estimated (the passes are reported twice); a model that misfits the structure's free vibration can pass this test too, which is why the prediction error's test, and one asked by residuals that are not white, is repeated at the likeliest model sub-steps before it is called motion (ACCURACY.md, \"A start in motion seen by the whole record\", thirty-fourth session)",
                         substeps, reduction, limit, rank, level
                     )
                 }
@@ -2421,10 +2421,15 @@ fn finish_with_output_error(
                 // off in its beams' EI — also passes the test, as a start state fits a
                 // little of any misfit: there it removed 4 % of the innovation cost, which
                 // stayed ~41× the noise; on a record cut in motion 60 %, down to 0.99×).
+                //
+                // Whiteness asks only for a law with a friction term, which is identified
+                // again with its start state estimated when found in motion; the other laws
+                // of this path would be refused, and a refusal is not what a whiteness
+                // finding at rest should bring (measured on Coulomb records only).
                 let observations = (data.len() * sigma.len()).max(1) as f64;
                 let misfit = r.report.cost_end > ANSWER_MISFIT_COST;
                 if r.report.accepted
-                    && (misfit || not_white.is_some())
+                    && (misfit || (not_white.is_some() && has_sign_basis(setup)))
                     && !by_prediction_error
                     && opts.start_motion.is_none()
                     && opts.starts_mid_record.is_none()

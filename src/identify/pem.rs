@@ -367,7 +367,8 @@ fn start_motion(
 }
 
 /// Whether a free-run output-error answer that misfits the record (a law without a `sign(u)`
-/// term, refined from rest) misfits it because the record starts in motion: the same
+/// term, refined from rest; a normalised cost above 2, or residuals that are not white)
+/// misfits it because the record starts in motion: the same
 /// likelihood-ratio test as the prediction error's ([`start_motion`]) at the answer, with the
 /// observer's force tuned there (on the first [`LEVEL_CHOICE_SAMPLES`]). `None` when it does
 /// not or the test cannot run.
@@ -382,7 +383,11 @@ fn start_motion(
 /// left after its refit within the misfit rule's 2). Measured: on those 8 records the test
 /// removed 1.5–4.7 of 2.5–5.3 (left 0.55–0.99); on a model 5 % off in its beams' EI, at
 /// rest, it passed its limit too (a start state fits a little of any misfit) but removed
-/// 1.7 of ~43, and that record is answered with the misfit note, as before.
+/// 1.7 of ~43, and that record is answered with the misfit note, as before. Since the
+/// thirty-first session a friction law found in motion is identified again with its start
+/// state estimated rather than refused. `confirm_at_likeliest` (the caller's whiteness
+/// case): the finding is tested again at the likeliest model sub-steps and `None` unless it
+/// holds there (see below).
 pub(super) fn motion_behind_misfit(
     setup: &Setup,
     model: &Model,
@@ -394,16 +399,20 @@ pub(super) fn motion_behind_misfit(
 ) -> Option<super::MotionInRecord> {
     let prefix = data.prefix(LEVEL_CHOICE_SAMPLES);
     let choice = prefix.as_ref().unwrap_or(data);
-    let (force, ll) = tune_pem_force(
-        setup,
-        model,
-        choice,
-        sigma,
-        params,
-        substeps,
-        None,
-        ForceSearch::Coarse,
-    );
+    // The observer's force at a level (a coarse search on `choice`) and its likelihood.
+    let coarse = |level: usize| {
+        tune_pem_force(
+            setup,
+            model,
+            choice,
+            sigma,
+            params,
+            level,
+            None,
+            ForceSearch::Coarse,
+        )
+    };
+    let (force, ll) = coarse(substeps);
     if !ll.is_finite() {
         return None;
     }
@@ -419,8 +428,9 @@ pub(super) fn motion_behind_misfit(
     // Seen again at the likeliest model sub-steps before it is called motion, as in the
     // prediction-error refinement (see `refine_by_prediction_error`): the answer's level
     // can misfit the data's own scheme (a beat a start state's free vibration also fits).
-    // The levels from the setup's, doubling, to 64 (and the answer's), compared under the
-    // answer level's observer. Measured (thirty-fourth session): Coulomb records at rest,
+    // The levels from the setup's, doubling, to 64 or the answer's if finer (and the
+    // answer's), compared under the answer level's observer; not confirmed (`None`) when
+    // that comparison or the likeliest level's force search fails. Measured (thirty-fourth session): Coulomb records at rest,
     // 64-sub-step data, 100 % noise, flagged at the answer's 32 or 128 sub-steps (1.5–7.8×
     // the limit) read 0.28–0.64× it at 64, the likeliest; an accelerometer-only one 13.9×
     // at 128, 0.30× at 64; records cut in motion read 10–147× the limit at every level.
@@ -448,22 +458,13 @@ pub(super) fn motion_behind_misfit(
         .iter()
         .filter(|t| t.1.is_finite())
         .max_by(|a, b| a.1.total_cmp(&b.1))
-        .map_or(substeps, |t| t.0);
+        .map(|t| t.0)?;
     if likeliest == substeps {
         return Some(seen);
     }
-    let (force, ll) = tune_pem_force(
-        setup,
-        model,
-        choice,
-        sigma,
-        params,
-        likeliest,
-        None,
-        ForceSearch::Coarse,
-    );
+    let (force, ll) = coarse(likeliest);
     if !ll.is_finite() {
-        return Some(seen);
+        return None;
     }
     start_motion(
         setup, model, data, sigma, params, likeliest, force, &mut tests,
