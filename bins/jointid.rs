@@ -162,9 +162,8 @@ enum Command {
         #[arg(long, value_name = "N")]
         bootstrap: Option<usize>,
         /// The record starts in motion (cut from a running test): estimate its start state
-        /// even when its first sample reads like rest (at high noise it can; the whiteness
-        /// note says when the record may start in motion). Laws linear in the state
-        /// (`--estimator ml`) always estimate it.
+        /// even when its first sample and the whole-record test read like rest (at high
+        /// noise they can). Laws linear in the state (`--estimator ml`) always estimate it.
         #[arg(long)]
         in_motion: bool,
         /// Write SVG plots here: force–deformation loops with the identified law, measured

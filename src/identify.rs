@@ -103,7 +103,7 @@ pub enum IdentifyError {
     MidRecord { sample: u64 },
     /// The user says the record starts in motion (`--in-motion`).
     #[error(
-        "the record is said to start in motion (`--in-motion`; first sample {sample}), and this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a friction (`sign`) term); identify with `--no-refine` (the Kalman passes estimate the initial state) or, for a law linear in the state, with `--estimator ml`"
+        "the record is said to start in motion (`--in-motion`; first sample {sample}), and this estimator starts the model at rest (the 1989 estimator, and the free-run output-error refinement of laws without a friction (`sign`) term); identify with `--estimator kalman --no-refine` (the Kalman passes estimate the initial state) or, for a law linear in the state, with `--estimator ml`"
     )]
     SaidInMotion { sample: u64 },
     /// A start in motion seen by the whole record's innovations, not by its first sample.

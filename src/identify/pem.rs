@@ -366,6 +366,19 @@ fn start_motion(
     )
 }
 
+/// Model sub-step levels `from`, `2 from`, `4 from`, … up to `finest` (`from` alone when its
+/// double is finer).
+fn doubling_levels(from: usize, finest: usize) -> Vec<usize> {
+    let mut levels = vec![from];
+    while let Some(&last) = levels.last() {
+        if last * 2 > finest {
+            break;
+        }
+        levels.push(last * 2);
+    }
+    levels
+}
+
 /// Whether a free-run output-error answer that misfits the record (a law without a `sign(u)`
 /// term, refined from rest; a normalised cost above 2, or residuals that are not white)
 /// misfits it because the record starts in motion: the same
@@ -430,21 +443,16 @@ pub(super) fn motion_behind_misfit(
     // can misfit the data's own scheme (a beat a start state's free vibration also fits).
     // The levels from the setup's, doubling, to 64 or the answer's if finer (and the
     // answer's), compared under the answer level's observer; not confirmed (`None`) when
-    // that comparison or the likeliest level's force search fails. Measured (thirty-fourth session): Coulomb records at rest,
-    // 64-sub-step data, 100 % noise, flagged at the answer's 32 or 128 sub-steps (1.5–7.8×
-    // the limit) read 0.28–0.64× it at 64, the likeliest; an accelerometer-only one 13.9×
-    // at 128, 0.30× at 64; records cut in motion read 10–147× the limit at every level.
+    // that comparison or the likeliest level's force search fails. Measured (thirty-fourth
+    // session): Coulomb records at rest, 64-sub-step data, 100 % noise, flagged at the
+    // answer's 32 or 128 sub-steps (1.5–7.8× the limit) read 0.28–0.64× it at 64, the
+    // likeliest; an accelerometer-only one 13.9× at 128, 0.30× at 64; records cut in motion
+    // read 10–147× the limit at every level.
     // (Asked for the whiteness test's finding; a misfit beyond the cost rule keeps the
     // answer level's test alone, as measured before: noise-free Coulomb records of 8
     // sub-steps are taken for records in motion there and answered within 1.5 errors, but
     // from rest, cleared at the likeliest level, one came out −8.6 %, 32 errors off.)
-    let mut levels = vec![setup.substeps.max(1)];
-    while let Some(&last) = levels.last() {
-        if last * 2 > MAX_PEM_LEVEL.max(substeps) {
-            break;
-        }
-        levels.push(last * 2);
-    }
+    let mut levels = doubling_levels(setup.substeps.max(1), MAX_PEM_LEVEL.max(substeps));
     if !levels.contains(&substeps) {
         levels.push(substeps);
     }
@@ -531,13 +539,10 @@ pub(super) fn refine_by_prediction_error<'a>(
     // and the refinement fell back to the free-run output error (−6.4 %, 621 se).
     // From the setup's level even when the scan fallback refines at its prefix's likeliest
     // (a finer one on a noisy prefix; see `identify::raise_substeps`).
-    let mut levels = vec![opts.coarsest_substeps.min(opts.substeps)];
-    while let Some(&last) = levels.last() {
-        if last * 2 > MAX_PEM_LEVEL.max(opts.substeps) {
-            break;
-        }
-        levels.push(last * 2);
-    }
+    let levels = doubling_levels(
+        opts.coarsest_substeps.min(opts.substeps),
+        MAX_PEM_LEVEL.max(opts.substeps),
+    );
     let initial = opts.initial_state.as_deref();
     let coarse = |level: usize| {
         tune_pem_force(
@@ -1182,6 +1187,15 @@ mod tests {
                 bootstrap: None,
             },
         }
+    }
+
+    /// The level ladders of the level choice and of the motion test's confirmation.
+    #[test]
+    fn doubling_levels_run_from_the_first_to_the_finest_that_fits() {
+        assert_eq!(doubling_levels(1, 64), vec![1, 2, 4, 8, 16, 32, 64]);
+        assert_eq!(doubling_levels(3, 64), vec![3, 6, 12, 24, 48]);
+        assert_eq!(doubling_levels(8, 128), vec![8, 16, 32, 64, 128]);
+        assert_eq!(doubling_levels(128, 64), vec![128]);
     }
 
     /// A sine repeats itself at its period; a multi-sine at the common period; white noise,
