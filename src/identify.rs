@@ -1098,8 +1098,19 @@ impl ParameterAccumulator {
 
     /// Add one sample's estimate. No allocation.
     pub fn push(&mut self, out: &StepOutput) {
+        self.push_parts(
+            out.delta.as_slice(),
+            out.delta_v.as_slice(),
+            out.delta_a.as_slice(),
+            out.force.as_slice(),
+        );
+    }
+
+    /// [`push`](Self::push) from the parts of a step output: per connection the deformation
+    /// `delta`, its rate and acceleration, and the connection force.
+    pub fn push_parts(&mut self, delta: &[f64], delta_v: &[f64], delta_a: &[f64], force: &[f64]) {
         for (c, basis) in self.blocks.iter().enumerate() {
-            let (d, dv, da) = (out.delta[c], out.delta_v[c], out.delta_a[c]);
+            let (d, dv, da) = (delta[c], delta_v[c], delta_a[c]);
             self.peak_d[c] = self.peak_d[c].max(d.abs());
             self.peak_v[c] = self.peak_v[c].max(dv.abs());
             let stuck = basis.iter().any(|b| match b {
@@ -1121,10 +1132,10 @@ impl ParameterAccumulator {
             for (x, b) in row.iter_mut().zip(basis) {
                 *x = b.eval(d, dv, da);
             }
-            self.fits[c].push(row, out.force[c]);
+            self.fits[c].push(row, force[c]);
             if let Some(k) = self.kept.as_mut() {
                 k[c].0.extend_from_slice(row);
-                k[c].1.push(out.force[c]);
+                k[c].1.push(force[c]);
             }
         }
     }
@@ -2871,7 +2882,10 @@ fn run_pass(
     acc.keep_rows();
     // The same fit with the band not widened by the estimator's uncertainty: used for a
     // connection whose widened band leaves too few samples (see [`MAX_STUCK_FRACTION`]).
-    let mut narrow: Option<ParameterAccumulator> = None;
+    // Made only then, from the pass's deformations and forces kept here (per sample and
+    // connection: δ, δ̇, δ̈, force): accumulated every pass, it was an eighth of one and
+    // seldom used (BENCHMARKS.md, thirty-fifth session).
+    let mut narrow_parts: Option<Vec<f64>> = None;
     if opts.stick_band_sigmas > 0.0 {
         let diag = est.diagnostics();
         let find = |key: String| diag.tuning_value(&key).unwrap_or(0.0);
@@ -2886,11 +2900,11 @@ fn run_pass(
                 .iter()
                 .any(|b| matches!(b, Basis::SignU | Basis::SignV))
         }) {
-            let mut n = ParameterAccumulator::new(setup, opts.stick_band, 1.0);
-            n.keep_rows();
-            narrow = Some(n);
+            narrow_parts = Some(Vec::with_capacity(4 * q * data.len()));
         }
     }
+    // Without forgetting the tracked fit is the batch fit, read from `acc` as it goes.
+    let follow = tracker.follows_batch();
     let mut out = StepOutput::new(q);
     let mut delta_sq = vec![0.0f64; q];
     let mut delta_rows = 0usize;
@@ -2899,6 +2913,21 @@ fn run_pass(
             *s += d * d;
         }
         delta_rows += 1;
+    };
+    let mut consume = |out: &StepOutput| {
+        acc.push(out);
+        if let Some(parts) = narrow_parts.as_mut() {
+            for v in [&out.delta, &out.delta_v, &out.delta_a, &out.force] {
+                parts.extend_from_slice(v.as_slice());
+            }
+        }
+        if follow {
+            tracker.follow(&acc, out.sample);
+        } else {
+            tracker.push(out);
+        }
+        take(out);
+        on_sample(out);
     };
     est.start(data.samples[0], &data.excitation[0]);
     for i in 1..data.len() {
@@ -2909,24 +2938,12 @@ fn run_pass(
             &mut out,
         )? {
             diverged_at(&out)?;
-            acc.push(&out);
-            if let Some(n) = narrow.as_mut() {
-                n.push(&out);
-            }
-            tracker.push(&out);
-            take(&out);
-            on_sample(&out);
+            consume(&out);
         }
     }
     while est.drain(&mut out) {
         diverged_at(&out)?;
-        acc.push(&out);
-        if let Some(n) = narrow.as_mut() {
-            n.push(&out);
-        }
-        tracker.push(&out);
-        take(&out);
-        on_sample(&out);
+        consume(&out);
     }
     let delta_rms: Vec<f64> = delta_sq
         .iter()
@@ -2942,8 +2959,27 @@ fn run_pass(
         &mut tuning,
         &mut warnings,
     )?;
-    let track = tracker.finish(data.samples.last().copied());
+    let track = tracker.finish_following(follow.then_some(&acc), data.samples.last().copied());
     let fits = acc.solve(opts.max_condition);
+    let narrow = narrow_parts
+        .filter(|_| {
+            let (used, excluded) = (acc.rows(), acc.excluded());
+            fits.iter().enumerate().any(|(c, fit)| {
+                fit.is_err()
+                    || excluded[c] as f64 > MAX_STUCK_FRACTION * (used[c] + excluded[c]) as f64
+            })
+        })
+        .map(|parts| {
+            let mut n = ParameterAccumulator::new(setup, opts.stick_band, 1.0);
+            n.keep_rows();
+            for sample in parts.chunks_exact(4 * q) {
+                let (delta, rest) = sample.split_at(q);
+                let (delta_v, rest) = rest.split_at(q);
+                let (delta_a, force) = rest.split_at(q);
+                n.push_parts(delta, delta_v, delta_a, force);
+            }
+            n
+        });
     let narrow_fits = narrow.as_ref().map(|n| n.solve(opts.max_condition));
     let mut parameters = Vec::new();
     let mut cond = Vec::new();

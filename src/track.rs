@@ -121,19 +121,36 @@ impl Tracker {
         self.acc.push(out);
         self.seen += 1;
         if self.seen.is_multiple_of(self.opts.every) {
-            self.record(out.sample);
+            self.record(None, out.sample);
         }
     }
 
-    fn record(&mut self, sample: u64) {
+    /// Whether this tracker keeps no memory limit (forgetting 1): its fit is then, row for
+    /// row, the batch fit `ParameterAccumulator::new(setup, stick_band, 1.0)` with the same
+    /// stuck bands, and it can [`follow`](Self::follow) that fit instead of accumulating
+    /// every row a second time.
+    pub fn follows_batch(&self) -> bool {
+        self.opts.forgetting == 1.0
+    }
+
+    /// [`push`](Self::push) for a tracker that [`follows_batch`](Self::follows_batch):
+    /// `batch` (the same stick band and widening) has just taken sample `sample`; every
+    /// `every` samples its running fit is solved and recorded. The same track, bit for bit,
+    /// as pushing; why: the second accumulation was an eighth of a Kalman pass
+    /// (BENCHMARKS.md, thirty-fifth session).
+    pub fn follow(&mut self, batch: &ParameterAccumulator, sample: u64) {
+        self.seen += 1;
+        if self.seen.is_multiple_of(self.opts.every) {
+            self.record(Some(batch), sample);
+        }
+    }
+
+    /// Solve the tracked fit (`batch`'s when following it) and record it at `sample`.
+    fn record(&mut self, batch: Option<&ParameterAccumulator>, sample: u64) {
         let mut parameters = Vec::with_capacity(self.blocks.iter().sum());
         let mut unsolved = Vec::new();
-        for (c, fit) in self
-            .acc
-            .solve(self.opts.max_condition)
-            .into_iter()
-            .enumerate()
-        {
+        let fits = batch.unwrap_or(&self.acc).solve(self.opts.max_condition);
+        for (c, fit) in fits.into_iter().enumerate() {
             match fit {
                 Ok(f) => parameters.extend(f.values.iter().zip(&f.std_errors).map(|(&v, &s)| {
                     Some(TrackedValue {
@@ -155,12 +172,21 @@ impl Tracker {
     }
 
     /// The history; the last sample is recorded too if the interval did not end on it.
-    pub fn finish(mut self, last_sample: Option<u64>) -> Track {
+    pub fn finish(self, last_sample: Option<u64>) -> Track {
+        self.finish_following(None, last_sample)
+    }
+
+    /// [`finish`](Self::finish) for a tracker that followed `batch` (`None`: it pushed).
+    pub fn finish_following(
+        mut self,
+        batch: Option<&ParameterAccumulator>,
+        last_sample: Option<u64>,
+    ) -> Track {
         if let Some(s) = last_sample
             && self.points.last().is_none_or(|p| p.sample != s)
             && self.seen > 0
         {
-            self.record(s);
+            self.record(batch, s);
         }
         Track {
             forgetting: self.opts.forgetting,

@@ -94,7 +94,8 @@ pub fn channel_noise_std(y: &[f64]) -> f64 {
 /// Maximise `f(x)` over `x ∈ [lo, hi]` (both > 0) in log space: a grid of `grid` points,
 /// then Brent's method (parabolic interpolation safeguarded by golden section) around the
 /// best grid point, for at most `refine` further evaluations, until the peak is known to
-/// [`LOG_TOLERANCE`] in `ln x`. Non-finite values count as −∞. Returns `(x, f(x),
+/// [`LOG_TOLERANCE`] in `ln x` or a step could gain less than [`LIKELIHOOD_TOLERANCE`] of
+/// `f` (a log-likelihood). Non-finite values count as −∞. Returns `(x, f(x),
 /// evaluations)`.
 pub fn maximise_log(
     lo: f64,
@@ -136,6 +137,30 @@ pub fn maximise_log_parallel(
 /// sequential filter runs per search shrinking the bracket by 0.618 each. Measured on the
 /// shipped friction replay: BENCHMARKS.md, eighteenth session.
 pub const LOG_TOLERANCE: f64 = 0.01;
+
+/// What a search of a log-likelihood still has to gain, in its units, when [`maximise_log`]
+/// stops before the next parabolic step: the step is not run when the parabola through the
+/// three best points predicts less than this above the best one. Why: a tuning's
+/// log-likelihood within 0.05 of its peak is a small fraction of the tuning's own
+/// uncertainty (one standard deviation is 0.5), and the `ln x` tolerance alone ran 2–4 more
+/// sequential filter runs per search that each gained 0.01–0.04 (traced on the benchmark
+/// record, BENCHMARKS.md thirty-fifth session).
+pub const LIKELIHOOD_TOLERANCE: f64 = 0.05;
+
+/// The fall, from `fx`, of the parabola through `(x, fx)`, `(w, fw)`, `(v, fv)` over the
+/// step `d` from `x` (∞ when the three points do not make a convex parabola: no reason to
+/// stop).
+fn parabola_gain(x: f64, fx: f64, w: f64, fw: f64, v: f64, fv: f64, d: f64) -> f64 {
+    if w == x || v == x || w == v {
+        return f64::INFINITY;
+    }
+    // Second divided difference: half the parabola's curvature.
+    let half_curvature = ((fw - fx) / (w - x) - (fv - fx) / (v - x)) / (w - v);
+    if half_curvature.is_nan() || half_curvature <= 0.0 {
+        return f64::INFINITY;
+    }
+    half_curvature * d * d
+}
 
 /// A whole-record likelihood's values remembered by the exact bits of its arguments.
 ///
@@ -272,6 +297,10 @@ fn brent_minimise(
             q = q.abs();
             let e_prev = e;
             if q > 0.0 && p.abs() < (0.5 * q * e_prev).abs() && p > q * (a - x) && p < q * (b - x) {
+                // What the step can still gain: the parabola's fall from `x` to its vertex.
+                if parabola_gain(x, fx, w, fw, v, fv, p / q) < LIKELIHOOD_TOLERANCE {
+                    break;
+                }
                 e = d;
                 d = p / q;
                 let u = x + d;
