@@ -35,18 +35,6 @@ pub fn map<T: Sync, R: Send>(items: &[T], f: impl Fn(&T) -> R + Sync) -> Vec<R> 
     map_with(threads(), items, f)
 }
 
-/// How many independent runs a sequential search may evaluate at once: [`threads`], or 1
-/// inside an item of a parallel map (whose cores are taken already). For speculative
-/// batches — runs of which only the first that passes is used, the others evaluated on
-/// cores that would otherwise idle.
-pub fn spare_width() -> usize {
-    if IN_PARALLEL_MAP.with(Cell::get) {
-        1
-    } else {
-        threads()
-    }
-}
-
 /// Sets [`IN_PARALLEL_MAP`] for its life and puts the former value back when dropped, also
 /// when an item panics (`jointid live` catches a window's panic and keeps its worker thread,
 /// whose later maps must not take themselves for nested).

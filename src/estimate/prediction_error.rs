@@ -1322,9 +1322,10 @@ pub fn refine(
             // samples): near the optimum the Gauss–Newton step was 0.002–0.05 errors, the
             // rough cost refused every damped step, and the 15 refused runs were 1.4 s of
             // the descent's 6.1 s.
-            // (Evaluated as many at once as there are cores since the thirty-fifth session:
-            // the machine of the eleventh, whose two vCPUs ran two simulations at 1.17× the
-            // throughput of one, gained nothing by it; today's run two at 2×, BENCHMARKS.md.)
+            // (Evaluated one after the other: trying two at once on the two cores was no
+            // faster — measured in the eleventh session and again in the thirty-fifth, when a
+            // round of two trials took 1.2–1.6 ms against 0.8 ms for one, BENCHMARKS.md —
+            // and wastes the second when the first succeeds.)
             let bound: Vec<f64> = scaled_inverse(&F)
                 .map(|i| (0..p.len()).map(|a| i[(a, a)].max(0.0).sqrt()).collect())
                 .unwrap_or_else(|| vec![f64::INFINITY; p.len()]);
@@ -1356,24 +1357,13 @@ pub fn refine(
                 }
                 damping *= 10.0;
             }
-            // Run as many at once as there are idle cores, then taken in their order (the
-            // same step as one after the other; a run after the taken one is wasted only on
-            // a core that would have idled).
             let mut stepped = None;
-            for batch in candidates.chunks(crate::par::spare_width()) {
+            for (trial, small, used) in candidates {
                 let t0 = std::time::Instant::now();
-                let runs = crate::par::map(batch, |(trial, _, _)| {
-                    innovations(setup, model, trial, &pred, excitation, response, substeps).ok()
-                });
+                let run =
+                    innovations(setup, model, &trial, &pred, excitation, response, substeps).ok();
                 crate::par::phase("descent trial", t0);
-                let taken = batch
-                    .iter()
-                    .zip(runs)
-                    .find_map(|((trial, small, used), run)| {
-                        run.filter(|r| r.1 < J.cost)
-                            .map(|run| (trial.clone(), *small, run, *used))
-                    });
-                if let Some((trial, small, run, used)) = taken {
+                if let Some(run) = run.filter(|r| r.1 < J.cost) {
                     stepped = Some((trial, small, run));
                     mu = (used / 10.0).max(1e-9);
                     break;
