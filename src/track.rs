@@ -274,6 +274,49 @@ dt_s = 1.0e-3
         assert!((at(&growing, 2000) - 85.0).abs() < 2.0);
     }
 
+    /// Without forgetting, a tracker that follows the batch accumulator (with the same stick
+    /// band and widening, as a Kalman pass sets them) records the same track, to the bit, as
+    /// one that accumulates every row itself — also when the last sample is off the
+    /// interval; with forgetting it does not offer to follow.
+    #[test]
+    fn a_tracker_following_the_batch_fit_records_the_pushed_track() {
+        use crate::identify::ParameterAccumulator;
+        let setup = spring_setup();
+        let opts = TrackOptions {
+            forgetting: 1.0,
+            every: 7,
+            max_condition: 1e12,
+        };
+        let mut pushing = Tracker::new(&setup, 0.05, opts);
+        let mut following = Tracker::new(&setup, 0.05, opts);
+        let mut batch = ParameterAccumulator::new(&setup, 0.05, 1.0);
+        for t in [&mut pushing, &mut following] {
+            t.widen_band(0, 2e-5, 0.0);
+        }
+        batch.widen_band(0, 2e-5, 0.0);
+        assert!(following.follows_batch());
+        for i in 1..=500u64 {
+            let d = (i as f64 * 0.37).sin() * 1e-3 + 1e-5 * (i as f64 * 1.3).cos();
+            let o = out(i, d, 100.0 * d + 0.01 * (i as f64 * 2.1).sin());
+            pushing.push(&o);
+            batch.push(&o);
+            following.follow(&batch, o.sample);
+        }
+        let a = pushing.finish(Some(500));
+        let b = following.finish_following(Some(&batch), Some(500));
+        assert_eq!(a.points.len(), 500 / 7 + 1);
+        assert_eq!(a.points, b.points);
+        let forgetting = Tracker::new(
+            &setup,
+            0.05,
+            TrackOptions {
+                forgetting: 0.99,
+                ..opts
+            },
+        );
+        assert!(!forgetting.follows_batch());
+    }
+
     /// Before enough rows exist the point says why and carries no number.
     #[test]
     fn an_unsolvable_fit_is_recorded_without_a_value() {
