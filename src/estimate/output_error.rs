@@ -445,6 +445,102 @@ pub struct ScanReport {
     pub ambiguous: bool,
 }
 
+/// Points of [`rescan_friction_level`]'s scan, over ± [`FRICTION_SCAN_REACH`] of the
+/// answer's level: a spacing of 0.5 % of it (15 N at 3,000 N), within the bowl of the
+/// level's cost (±40–50 N at 3,000 N on the records below, its ripples ~25 N apart): a
+/// spacing of 1.5 % over ±30 % (tried first) put no point in the bowl of seed 7745.
+const FRICTION_SCAN_POINTS: usize = 41;
+/// Reach of that scan, as a fraction of the answer's friction level (the misses measured:
+/// 1.9 and 0.9 %).
+const FRICTION_SCAN_REACH: f64 = 0.1;
+
+/// A scan of each friction level (`sign(u)`, `sign(v)` terms) of an accepted free-run
+/// answer whose residuals are not white, the other parameters held at the answer; from the
+/// scan's lowest local minima (up to three outside the answer's 3 standard errors) a
+/// descent each; the lowest-cost result is returned when its cost is below the answer's by
+/// more than Δχ² = 1 (× the normalised cost when above 1, the probe's rule), with the cost
+/// it started from. `None`: nothing lower.
+///
+/// Why: the Coulomb `sign(v)` law's output-error cost is a wide bowl in the level with
+/// ripples a few newtons wide on its shoulders; the descent from the residual-force estimate
+/// can stop on a ripple tens of standard errors from the bowl's bottom, beyond the probe's
+/// 8 errors, and there the answer's residuals are not white (its stated error covers the
+/// noise, not the miss). Measured (ACCURACY.md, thirty-fifth session; Coulomb setup,
+/// own-discretisation data at 1 % noise, seed 7705): `sign(v)` 3,056.3 ± 0.95 N (truth
+/// 3,000; 59 errors off, cost 0.2570, portmanteau 4,467 against a limit of 45); the cost
+/// along the level, the stiffness held, falls from the answer's shoulder to 0.2438 at
+/// 3,000 N, where a descent started at the truth ends (3,000.2 ± 0.7 N, white residuals).
+/// The stiffness has its own scan (`refine_global`); the level's is asked only when the
+/// residuals say the answer is not the data's.
+#[allow(clippy::too_many_arguments)]
+pub fn rescan_friction_level(
+    setup: &Setup,
+    model: &Model,
+    answer: &Refined,
+    excitation: &[Vec<f64>],
+    response: &[Vec<f64>],
+    sigma: &[f64],
+    substeps: usize,
+    max_iter: usize,
+) -> Option<Refined> {
+    let basis = setup.param_basis();
+    let nobs = (excitation.len() * sigma.len()) as f64;
+    let cost = answer.report.cost_end;
+    let mut best: Option<Refined> = None;
+    for (j, b) in basis.iter().enumerate() {
+        let level = answer.values[j];
+        if !is_sign(b) || !(level.is_finite() && level > 0.0) {
+            continue;
+        }
+        let points: Vec<Vec<f64>> = (0..FRICTION_SCAN_POINTS)
+            .map(|i| {
+                let t = 2.0 * i as f64 / (FRICTION_SCAN_POINTS - 1) as f64 - 1.0;
+                let mut p = answer.values.clone();
+                p[j] = level * (1.0 + FRICTION_SCAN_REACH * t);
+                p
+            })
+            .collect();
+        let costs = crate::par::map(&points, |p| {
+            residuals(setup, model, p, excitation, response, sigma, substeps)
+                .map(|r| r.1 / nobs)
+                .unwrap_or(f64::INFINITY)
+        });
+        let n = points.len();
+        let mut local: Vec<usize> = (0..n)
+            .filter(|&i| {
+                let c = costs[i];
+                c.is_finite()
+                    && (i == 0 || c <= costs[i - 1])
+                    && (i + 1 == n || c <= costs[i + 1])
+                    && (points[i][j] - level).abs() > 3.0 * answer.std_errors[j]
+            })
+            .collect();
+        local.sort_by(|a, b| costs[*a].total_cmp(&costs[*b]));
+        local.truncate(3);
+        let descents = crate::par::map(&local, |&i| {
+            refine(
+                setup,
+                model,
+                &points[i],
+                &answer.std_errors,
+                excitation,
+                response,
+                sigma,
+                substeps,
+                max_iter,
+            )
+            .ok()
+        });
+        for r in descents.into_iter().flatten() {
+            let lowest = best.as_ref().map_or(cost, |b| b.report.cost_end);
+            if r.report.cost_end < lowest {
+                best = Some(r);
+            }
+        }
+    }
+    best.filter(|b| (cost - b.report.cost_end) * nobs > cost.max(1.0))
+}
+
 /// Rounds of the probe of [`refine_global`] (each: 8 simulations per parameter, then a
 /// descent when a probe is lower) and the probe offsets in standard errors.
 pub const PROBE_ROUNDS: usize = 4;
