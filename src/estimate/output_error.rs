@@ -489,7 +489,7 @@ pub fn rescan_friction_level(
     let mut best: Option<Refined> = None;
     for (j, b) in basis.iter().enumerate() {
         let level = answer.values[j];
-        if !is_sign(b) || !(level.is_finite() && level > 0.0) {
+        if !(is_sign(b) && level.is_finite() && level > 0.0) {
             continue;
         }
         let points: Vec<Vec<f64>> = (0..FRICTION_SCAN_POINTS)
