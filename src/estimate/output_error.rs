@@ -445,6 +445,20 @@ pub struct ScanReport {
     pub ambiguous: bool,
 }
 
+/// The local minima of a scan's costs (finite, no higher than either neighbour), lowest
+/// first (ties in scan order).
+fn local_minima(costs: &[f64]) -> Vec<usize> {
+    let n = costs.len();
+    let mut local: Vec<usize> = (0..n)
+        .filter(|&i| {
+            let c = costs[i];
+            c.is_finite() && (i == 0 || c <= costs[i - 1]) && (i + 1 == n || c <= costs[i + 1])
+        })
+        .collect();
+    local.sort_by(|a, b| costs[*a].total_cmp(&costs[*b]));
+    local
+}
+
 /// Points of [`rescan_friction_level`]'s scan, over ± [`FRICTION_SCAN_REACH`] of the
 /// answer's level: a spacing of 0.5 % of it (15 N at 3,000 N), within the bowl of the
 /// level's cost (±40–50 N at 3,000 N on the records below, its ripples ~25 N apart): a
@@ -458,8 +472,8 @@ const FRICTION_SCAN_REACH: f64 = 0.1;
 /// answer whose residuals are not white, the other parameters held at the answer; from the
 /// scan's lowest local minima (up to three outside the answer's 3 standard errors) a
 /// descent each; the lowest-cost result is returned when its cost is below the answer's by
-/// more than Δχ² = 1 (× the normalised cost when above 1, the probe's rule), with the cost
-/// it started from. `None`: nothing lower.
+/// more than Δχ² = 1 (× the normalised cost when above 1, the probe's rule). `None`:
+/// nothing lower.
 ///
 /// Why: the Coulomb `sign(v)` law's output-error cost is a wide bowl in the level with
 /// ripples a few newtons wide on its shoulders; the descent from the residual-force estimate
@@ -505,18 +519,11 @@ pub fn rescan_friction_level(
                 .map(|r| r.1 / nobs)
                 .unwrap_or(f64::INFINITY)
         });
-        let n = points.len();
-        let mut local: Vec<usize> = (0..n)
-            .filter(|&i| {
-                let c = costs[i];
-                c.is_finite()
-                    && (i == 0 || c <= costs[i - 1])
-                    && (i + 1 == n || c <= costs[i + 1])
-                    && (points[i][j] - level).abs() > 3.0 * answer.std_errors[j]
-            })
+        let local: Vec<usize> = local_minima(&costs)
+            .into_iter()
+            .filter(|&i| (points[i][j] - level).abs() > 3.0 * answer.std_errors[j])
+            .take(3)
             .collect();
-        local.sort_by(|a, b| costs[*a].total_cmp(&costs[*b]));
-        local.truncate(3);
         let descents = crate::par::map(&local, |&i| {
             refine(
                 setup,
@@ -653,15 +660,7 @@ pub fn refine_global(
     // error where the truth cost less by Δχ² ≈ 1,500. A descent that ends where another
     // did is merely redundant, so only points within 3 standard errors are skipped.
     let same_basin = 3.0 * plain.std_errors[j];
-    let mut local: Vec<usize> = (0..points)
-        .filter(|&i| {
-            let c = grid[i].1;
-            c.is_finite()
-                && (i == 0 || c <= grid[i - 1].1)
-                && (i + 1 == points || c <= grid[i + 1].1)
-        })
-        .collect();
-    local.sort_by(|a, b| grid[*a].1.total_cmp(&grid[*b].1));
+    let local = local_minima(&grid.iter().map(|g| g.1).collect::<Vec<_>>());
     let mut minima = vec![Minimum {
         values: plain.values.clone(),
         cost: plain.report.cost_end,
