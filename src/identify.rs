@@ -2425,7 +2425,8 @@ fn finish_with_output_error(
                 // run may have stopped on a ripple of the level's cost (see
                 // `output_error::rescan_friction_level`); a lower minimum found along the
                 // level is the answer (a lower point of the likelihood is the better answer),
-                // its residuals tested again.
+                // its residuals tested again. Also for a `sign(u)` law here after its
+                // prediction-error refinement was refused (the same free-run cost).
                 let (r, not_white) = match (&not_white, has_sign_basis(setup)) {
                     (Some(_), true) if r.report.accepted => {
                         match crate::estimate::output_error::rescan_friction_level(
@@ -2439,11 +2440,35 @@ fn finish_with_output_error(
                             opts.output_error_iterations,
                         ) {
                             Some(mut lower) => {
+                                // Two minima the cost cannot tell apart (the stiffness scan's
+                                // rule, `refine_global`): the errors cover both. The answer's
+                                // own errors (a stiffness scan's widening among them) stay a
+                                // floor.
+                                let nobs = (data.len() * sigma.len()) as f64;
+                                let apart = (r.report.cost_end - lower.report.cost_end) * nobs;
+                                let covers = apart < 3.84 * lower.report.cost_end.max(1.0);
+                                for ((e, old), (a, b)) in lower
+                                    .std_errors
+                                    .iter_mut()
+                                    .zip(&r.std_errors)
+                                    .zip(lower.values.iter().zip(&r.values))
+                                {
+                                    *e = e.max(*old);
+                                    if covers {
+                                        *e = e.max((a - b).abs());
+                                    }
+                                }
                                 lower.report.note = format!(
-                                    "{}; taken from a scan of the friction level asked by residuals that were not white (normalised cost {:.4} → {:.4})",
-                                    lower.report.note, r.report.cost_end, lower.report.cost_end
+                                    "{}; taken from a scan of the friction level asked by residuals that were not white (normalised cost {:.4} → {:.4}; before it: {})",
+                                    lower.report.note,
+                                    r.report.cost_end,
+                                    lower.report.cost_end,
+                                    r.report.note
                                 );
                                 lower.report.cost_start = r.report.cost_start;
+                                lower.report.start_values = r.report.start_values.clone();
+                                lower.report.iterations += r.report.iterations;
+                                lower.report.scan = r.report.scan.clone();
                                 lower.report.accepted = true;
                                 let again = residuals_not_white(
                                     setup,

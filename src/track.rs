@@ -203,6 +203,10 @@ mod tests {
     use nalgebra::DVector;
 
     fn spring_setup() -> Setup {
+        setup_with_basis(r#"["u"]"#)
+    }
+
+    fn setup_with_basis(basis: &str) -> Setup {
         let text = r#"
 [model]
 nodes = [{ id = 1, x = 0.0 }, { id = 2, x = 1.0 }]
@@ -221,12 +225,12 @@ quantity = "displacement"
 [[connections]]
 name = "joint"
 dof = { node = 2, dir = "w" }
-basis = ["u"]
+basis = BASIS
 
 [integrator]
 dt_s = 1.0e-3
 "#;
-        Setup::from_toml(text, "inline").expect("valid setup")
+        Setup::from_toml(&text.replace("BASIS", basis), "inline").expect("valid setup")
     }
 
     fn out(sample: u64, d: f64, f: f64) -> StepOutput {
@@ -275,13 +279,15 @@ dt_s = 1.0e-3
     }
 
     /// Without forgetting, a tracker that follows the batch accumulator (with the same stick
-    /// band and widening, as a Kalman pass sets them) records the same track, to the bit, as
+    /// band and widening, as a Kalman pass sets them; a friction term, so samples are
+    /// excluded as stuck) records the same track, to the bit, as
     /// one that accumulates every row itself — also when the last sample is off the
     /// interval; with forgetting it does not offer to follow.
     #[test]
     fn a_tracker_following_the_batch_fit_records_the_pushed_track() {
         use crate::identify::ParameterAccumulator;
-        let setup = spring_setup();
+        // A friction term, so that the stuck band (and its widening) excludes samples.
+        let setup = setup_with_basis(r#"["sign(u)", "u"]"#);
         let opts = TrackOptions {
             forgetting: 1.0,
             every: 7,
@@ -297,7 +303,11 @@ dt_s = 1.0e-3
         assert!(following.follows_batch());
         for i in 1..=500u64 {
             let d = (i as f64 * 0.37).sin() * 1e-3 + 1e-5 * (i as f64 * 1.3).cos();
-            let o = out(i, d, 100.0 * d + 0.01 * (i as f64 * 2.1).sin());
+            let o = out(
+                i,
+                d,
+                0.5 * d.signum() + 100.0 * d + 0.01 * (i as f64 * 2.1).sin(),
+            );
             pushing.push(&o);
             batch.push(&o);
             following.follow(&batch, o.sample);
@@ -306,6 +316,7 @@ dt_s = 1.0e-3
         let b = following.finish_following(Some(&batch), Some(500));
         assert_eq!(a.points.len(), 500 / 7 + 1);
         assert_eq!(a.points, b.points);
+        assert!(batch.excluded()[0] > 0, "no sample excluded by the band");
         let forgetting = Tracker::new(
             &setup,
             0.05,

@@ -247,7 +247,8 @@ fn maximise_log_batched(
 
 /// Brent's minimiser (Brent 1973, ch. 5; the `fmin` algorithm) of `g` on `[lo, hi]` from the
 /// point `x` (inside, its value known) and up to two other known points, for at most
-/// `max_evals` evaluations of `g`, to the absolute tolerance [`LOG_TOLERANCE`]. `+∞` values
+/// `max_evals` evaluations of `g`, to the absolute tolerance [`LOG_TOLERANCE`] or until,
+/// after a parabolic step, the next could gain less than [`LIKELIHOOD_TOLERANCE`]. `+∞` values
 /// are allowed (a failed run): the parabola is then not trusted and the step is golden.
 /// Returns the best point seen and the number of evaluations.
 fn brent_minimise(
@@ -279,6 +280,7 @@ fn brent_minimise(
     let mut d = 0.0f64;
     let mut e = if w != x { b - a } else { 0.0 };
     let mut evals = 0;
+    let mut last_parabolic = false;
     while evals < max_evals {
         let xm = 0.5 * (a + b);
         let tol2 = 2.0 * tol;
@@ -297,8 +299,13 @@ fn brent_minimise(
             q = q.abs();
             let e_prev = e;
             if q > 0.0 && p.abs() < (0.5 * q * e_prev).abs() && p > q * (a - x) && p < q * (b - x) {
-                // What the step can still gain: the parabola's fall from `x` to its vertex.
-                if parabola_gain(x, fx, w, fw, v, fv, p / q) < LIKELIHOOD_TOLERANCE {
+                // What the step can still gain: the parabola's fall from `x` to its vertex —
+                // trusted only after a parabolic step, when its three points are the search's
+                // latest, close ones (through the grid's neighbours or after a golden step it
+                // spans the bracket and can underestimate the gain several times over).
+                if last_parabolic
+                    && parabola_gain(x, fx, w, fw, v, fv, p / q) < LIKELIHOOD_TOLERANCE
+                {
                     break;
                 }
                 e = d;
@@ -319,6 +326,7 @@ fn brent_minimise(
         } else {
             x + tol.copysign(d)
         };
+        last_parabolic = !golden;
         let fu = g(u);
         let fu = if fu.is_nan() { f64::INFINITY } else { fu };
         evals += 1;
@@ -433,9 +441,10 @@ mod tests {
     /// A peak that is not a parabola in `ln x` (skewed, and a failed region beside it) is
     /// still found to the tolerance, within the evaluation cap — as a log-likelihood of
     /// thousands of samples (a curvature of 2,000 per unit of `ln x` squared, as the
-    /// tunings' are, so that the likelihood stop comes after the `ln x` one); as flat as a
-    /// single sample's, it is found to within [`LIKELIHOOD_TOLERANCE`] of its peak value, in
-    /// fewer evaluations.
+    /// tunings' are); as flat as a single sample's, it is found to within
+    /// [`LIKELIHOOD_TOLERANCE`] of its peak value, in fewer evaluations. (With the stop
+    /// trusted right after the first, golden step, the flat search of the peak at 3 stopped
+    /// at −0.094: that parabola spanned the bracket.)
     #[test]
     fn maximise_log_finds_a_skewed_peak_to_its_tolerance() {
         for peak in [0.37f64, 3.0, 41.0, 900.0] {
