@@ -2424,8 +2424,9 @@ fn finish_with_output_error(
                 // Residuals still not white at rest, for a law with a friction term: the free
                 // run may have stopped on a ripple of the level's cost (see
                 // `output_error::rescan_friction_level`); a lower minimum found along the
-                // level whose residuals are white is the answer. Also for a `sign(u)` law here after its
-                // prediction-error refinement was refused (the same free-run cost).
+                // level whose residuals are white is the answer. Also for a `sign(u)` law
+                // here after its prediction-error refinement was refused (the same free-run
+                // cost).
                 let (r, not_white) = match (&not_white, has_sign_basis(setup)) {
                     (Some(_), true) if r.report.accepted => {
                         match crate::estimate::output_error::rescan_friction_level(
@@ -2443,8 +2444,8 @@ fn finish_with_output_error(
                                 // rule, `refine_global`): the errors cover both. The answer's
                                 // own errors (a stiffness scan's widening among them) stay a
                                 // floor.
-                                let nobs = (data.len() * sigma.len()) as f64;
-                                let apart = (r.report.cost_end - lower.report.cost_end) * nobs;
+                                let apart =
+                                    (r.report.cost_end - lower.report.cost_end) * observations;
                                 let covers = apart < 3.84 * lower.report.cost_end.max(1.0);
                                 for ((e, old), (a, b)) in lower
                                     .std_errors
