@@ -2421,78 +2421,29 @@ fn finish_with_output_error(
                     result.motion_in_record = Some(m);
                     return;
                 }
-                // Residuals still not white at rest, for a law with a friction term: the free
-                // run may have stopped on a ripple of the level's cost (see
-                // `output_error::rescan_friction_level`); a lower minimum found along the
-                // level whose residuals are white is the answer. Also for a `sign(u)` law
-                // here after its prediction-error refinement was refused (the same free-run
-                // cost).
-                let (r, not_white) = match (&not_white, has_sign_basis(setup)) {
-                    (Some(_), true) if r.report.accepted => {
-                        match crate::estimate::output_error::rescan_friction_level(
+                // Residuals still not white at rest, for a law that is not linear in the
+                // state: the free run may have stopped in a local minimum of its cost (a
+                // ripple of a friction level's or a damper's cost). The prediction error's
+                // answer from the same start (see `pem::observer_answer`) starts another free
+                // run, taken only when it costs less and its residuals are white
+                // (`free_run_from_observer_answer`). Also for a `sign(u)` law here after its
+                // prediction-error refinement was refused (the same free-run cost).
+                let lower = (not_white.is_some() && r.report.accepted && !linear)
+                    .then(|| {
+                        free_run_from_observer_answer(
                             setup,
                             model,
-                            &r,
-                            exc,
-                            resp,
+                            data,
+                            opts,
                             sigma,
-                            r.report.substeps,
-                            opts.output_error_iterations,
-                        ) {
-                            Some(mut lower) => {
-                                // Two minima the cost cannot tell apart (the stiffness scan's
-                                // rule, `refine_global`): the errors cover both. The answer's
-                                // own errors (a stiffness scan's widening among them) stay a
-                                // floor.
-                                let apart =
-                                    (r.report.cost_end - lower.report.cost_end) * observations;
-                                let covers = apart < 3.84 * lower.report.cost_end.max(1.0);
-                                for ((e, old), (a, b)) in lower
-                                    .std_errors
-                                    .iter_mut()
-                                    .zip(&r.std_errors)
-                                    .zip(lower.values.iter().zip(&r.values))
-                                {
-                                    *e = e.max(*old);
-                                    if covers {
-                                        *e = e.max((a - b).abs());
-                                    }
-                                }
-                                lower.report.note = format!(
-                                    "{}; taken from a scan of the friction level asked by residuals that were not white (normalised cost {:.4} → {:.4}; before it: {})",
-                                    lower.report.note,
-                                    r.report.cost_end,
-                                    lower.report.cost_end,
-                                    r.report.note
-                                );
-                                lower.report.cost_start = r.report.cost_start;
-                                lower.report.start_values = r.report.start_values.clone();
-                                lower.report.iterations += r.report.iterations;
-                                lower.report.scan = r.report.scan.clone();
-                                lower.report.accepted = true;
-                                // Taken only where it explains the data: white residuals.
-                                // Where they stay structured, neither minimum is the data's
-                                // and the cost's ranking of the two is no evidence (measured:
-                                // accelerometers only, Coulomb, 64-sub-step data at 100 %
-                                // noise, seed 3 of `accelerometers_only_friction_at_full_
-                                // noise_far_rescan_and_settling` — a lower cost with the
-                                // spring −32 %, 5.9 errors off, against −1.6 % before).
-                                match residuals_not_white(
-                                    setup,
-                                    model,
-                                    &lower.values,
-                                    data,
-                                    sigma,
-                                    lower.report.substeps,
-                                ) {
-                                    None => (lower, None),
-                                    Some(_) => (r, not_white),
-                                }
-                            }
-                            None => (r, not_white),
-                        }
-                    }
-                    _ => (r, not_white),
+                            (&values, &scales),
+                            &r,
+                        )
+                    })
+                    .flatten();
+                let (r, not_white) = match lower {
+                    Some(lower) => (lower, None),
+                    None => (r, not_white),
                 };
                 if let Some(scan) = r.report.scan.as_ref().filter(|s| s.ambiguous) {
                     result.notes.push(format!(
@@ -2598,6 +2549,93 @@ fn finish_with_output_error(
                 .push(format!("Cramér–Rao bound not computed: {e}")),
         }
     }
+}
+
+/// For an accepted free-run `answer` whose residuals were not white: the free run from the
+/// prediction error's answer (`pem::observer_answer`) from the same `start` and with the
+/// answer's model sub-steps, taken when it costs less by Δχ² > max(cost, 1) and its own
+/// residuals are white; `None` otherwise.
+///
+/// Why white: where the residuals stay structured neither minimum is the data's and the
+/// cost's ranking of the two is no evidence (measured with the friction-level scan this
+/// replaced: accelerometers only, Coulomb, 64-sub-step data at 100 % noise, seed 3 of
+/// `accelerometers_only_friction_at_full_noise_far_rescan_and_settling` — a lower cost with
+/// the spring −32 %, 5.9 errors off, against −1.6 % before). The errors are at least the
+/// answer's (a stiffness scan's widening among them), and cover both minima when the cost
+/// cannot tell them apart (Δχ² < 3.84 × max(cost, 1), the stiffness scan's rule in
+/// `output_error::refine_global`). The report keeps the answer's start, scan and note.
+fn free_run_from_observer_answer(
+    setup: &Setup,
+    model: &Model,
+    data: &TestData,
+    opts: &IdentifyOptions,
+    sigma: &[f64],
+    (start, scales): (&[f64], &[f64]),
+    answer: &crate::estimate::output_error::Refined,
+) -> Option<crate::estimate::output_error::Refined> {
+    let substeps = answer.report.substeps;
+    let observed = pem::observer_answer(
+        setup,
+        model,
+        data,
+        sigma,
+        start,
+        scales,
+        substeps,
+        opts.output_error_iterations,
+    )?;
+    let mut lower = crate::estimate::output_error::refine(
+        setup,
+        model,
+        &observed,
+        &answer.std_errors,
+        &data.excitation,
+        &data.response,
+        sigma,
+        substeps,
+        opts.output_error_iterations,
+    )
+    .ok()?;
+    let observations = (data.len() * sigma.len()).max(1) as f64;
+    let (cost, lower_cost) = (answer.report.cost_end, lower.report.cost_end);
+    let apart = (cost - lower_cost) * observations;
+    // (`accepted` of the free run from the observer's answer says only that it moved; a
+    // cost that is not finite compares false.)
+    if apart.partial_cmp(&cost.max(1.0)) != Some(std::cmp::Ordering::Greater) {
+        return None;
+    }
+    residuals_not_white(
+        setup,
+        model,
+        &lower.values,
+        data,
+        sigma,
+        lower.report.substeps,
+    )
+    .is_none()
+    .then_some(())?;
+    let covers = apart < 3.84 * lower_cost.max(1.0);
+    for ((e, old), (a, b)) in lower
+        .std_errors
+        .iter_mut()
+        .zip(&answer.std_errors)
+        .zip(lower.values.iter().zip(&answer.values))
+    {
+        *e = e.max(*old);
+        if covers {
+            *e = e.max((a - b).abs());
+        }
+    }
+    lower.report.note = format!(
+        "{}; taken from a free run started at the prediction error's answer (an observer-corrected descent from the same start), asked by residuals that were not white (normalised cost {cost:.4} → {lower_cost:.4}; before it: {})",
+        lower.report.note, answer.report.note
+    );
+    lower.report.cost_start = answer.report.cost_start;
+    lower.report.start_values = answer.report.start_values.clone();
+    lower.report.iterations += answer.report.iterations;
+    lower.report.scan = answer.report.scan.clone();
+    lower.report.accepted = true;
+    Some(lower)
 }
 
 /// The whiteness test of the maximum-likelihood fit (a Box–Pierce portmanteau per channel
