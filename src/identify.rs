@@ -48,9 +48,9 @@ mod scan;
 
 use pem::{PEM_MAX_COST, PemStage, pem_undetermined, refine_by_prediction_error};
 use scan::{
-    MAX_SCAN_PROBE_MOVE, SETTLE_ROUNDS, ScanReason, acceleration_only, has_sign_basis,
-    has_sign_u_basis, has_spring_basis, identify_acceleration_only, identify_from_scan,
-    restate_final_errors, scan_fallback_applies,
+    MAX_SCAN_PROBE_MOVE, SETTLE_ROUNDS, ScanReason, acceleration_only, has_nonlinear_term,
+    has_sign_basis, has_sign_u_basis, has_spring_basis, identify_acceleration_only,
+    identify_from_scan, restate_final_errors, scan_fallback_applies,
 };
 
 #[derive(Debug, thiserror::Error)]
@@ -2421,26 +2421,32 @@ fn finish_with_output_error(
                     result.motion_in_record = Some(m);
                     return;
                 }
-                // Residuals still not white at rest, for a law that is not linear in the
-                // state: the free run may have stopped in a local minimum of its cost (a
-                // ripple of a friction level's or a damper's cost). The prediction error's
-                // answer from the same start (see `pem::observer_answer`) starts another free
-                // run, taken only when it costs less and its residuals are white
-                // (`free_run_from_observer_answer`). Also for a `sign(u)` law here after its
-                // prediction-error refinement was refused (the same free-run cost).
-                let lower = (not_white.is_some() && r.report.accepted && !linear)
-                    .then(|| {
-                        free_run_from_observer_answer(
-                            setup,
-                            model,
-                            data,
-                            opts,
-                            sigma,
-                            (&values, &scales),
-                            &r,
-                        )
-                    })
-                    .flatten();
+                // Residuals still not white at rest (after the start-in-motion test, where it
+                // is asked: friction laws), for a law with a term that is not linear in the
+                // state (friction, cubic, gap): the free run may have stopped in a local
+                // minimum of its cost (a ripple of a friction level's or a damper's cost).
+                // The prediction error's answer from the same start (see
+                // `pem::observer_answer`) starts another free run, taken only when it costs
+                // less and its residuals are white (`free_run_from_observer_answer`). Also
+                // for a `sign(u)` law here after its prediction-error refinement was refused
+                // (the same free-run cost). Only on a dense model: the predictor's observer
+                // needs the dense matrices (as the motion test above).
+                let lower = (not_white.is_some()
+                    && r.report.accepted
+                    && has_nonlinear_term(setup)
+                    && model.has_dense())
+                .then(|| {
+                    free_run_from_observer_answer(
+                        setup,
+                        model,
+                        data,
+                        opts,
+                        sigma,
+                        (&values, &scales),
+                        &r,
+                    )
+                })
+                .flatten();
                 let (r, not_white) = match lower {
                     Some(lower) => (lower, None),
                     None => (r, not_white),

@@ -56,6 +56,16 @@ pub(super) fn has_sign_basis(setup: &Setup) -> bool {
         .any(|b| matches!(b, Basis::SignU | Basis::SignV))
 }
 
+/// Whether a connection's law has a term that is not linear in the state (friction, cubic
+/// stiffness, gap): its free-run output-error cost can have local minima away from the
+/// stiffness the scan of `output_error::refine_global` covers.
+pub(super) fn has_nonlinear_term(setup: &Setup) -> bool {
+    setup
+        .param_basis()
+        .iter()
+        .any(|b| matches!(b, Basis::SignU | Basis::SignV | Basis::U3 | Basis::Gap(_)))
+}
+
 /// Samples of the record prefix on which [`identify_acceleration_only`] scans the stiffness
 /// (the output-error basin widens like 1/length: measured half-width 5–17 % of the truth
 /// at 2,000 samples, so ≥ 50 % at 200).
