@@ -643,23 +643,28 @@ fn a_coulomb_answer_on_a_ripple_of_the_friction_cost_is_found_again_from_the_obs
         // The minimum's own error (1.1–1.2 N), not widened to cover the ripple's answer.
         let friction_se = v["parameters"][0]["std_error"].as_f64().unwrap();
         assert!(friction_se < 2.0, "seed {seed}: ± {friction_se}");
-        assert!(
-            !says(&v, "the residuals are not white"),
-            "seed {seed}: {}",
-            v["notes"]
-        );
-        let note = v["output_error"]["note"].as_str().unwrap();
-        assert!(
-            note.contains("started at the prediction error's answer"),
-            "seed {seed}: {note}"
-        );
+        assert_taken_from_the_observer(&v, seed);
     }
+}
+
+/// A replay's answer came from the free run started at the prediction error's answer (the
+/// refinement's note says so) and its residuals are white.
+fn assert_taken_from_the_observer(v: &serde_json::Value, seed: &str) {
+    assert!(
+        !says(v, "the residuals are not white"),
+        "seed {seed}: {}",
+        v["notes"]
+    );
+    let note = v["output_error"]["note"].as_str().unwrap();
+    assert!(
+        note.contains("started at the prediction error's answer"),
+        "seed {seed}: {note}"
+    );
 }
 
 /// The shipped gap setup (`gap(0.02), v`) on 8-sub-step data at 10 % noise, seeds 7504 and
 /// 7514 of the thirty-fourth session's gap sweep (re-run on 07936bf): the passes did not
-/// converge (the last
-/// change ~7 errors) and the free-run output error from their answer stopped in a local
+/// converge (the last change ~7 errors) and the free-run output error from their answer stopped in a local
 /// minimum — the damper 17.6 and 9.6 N s/m (truth 20) with 0.03 N s/m stated, 89 and 352
 /// errors off, the gap's stiffness 29 and 64 errors off — with only the whiteness note to
 /// say so (at seed 7514 the truth's free-run cost is lower by Δχ² ≈ 8,000). The prediction
@@ -690,16 +695,7 @@ fn a_gap_answer_in_a_local_minimum_of_the_free_run_is_found_again_from_the_obser
             (damper / 20.0 - 1.0).abs() < 0.01 && damper_se < 0.3,
             "seed {seed}: {damper} ± {damper_se}"
         );
-        assert!(
-            !says(&v, "the residuals are not white"),
-            "seed {seed}: {}",
-            v["notes"]
-        );
-        let note = v["output_error"]["note"].as_str().unwrap();
-        assert!(
-            note.contains("started at the prediction error's answer"),
-            "seed {seed}: {note}"
-        );
+        assert_taken_from_the_observer(&v, seed);
     }
 }
 
