@@ -2610,7 +2610,7 @@ fn free_run_from_observer_answer(
     if apart.partial_cmp(&cost.max(1.0)) != Some(std::cmp::Ordering::Greater) {
         return None;
     }
-    residuals_not_white(
+    if residuals_not_white(
         setup,
         model,
         &lower.values,
@@ -2618,8 +2618,10 @@ fn free_run_from_observer_answer(
         sigma,
         lower.report.substeps,
     )
-    .is_none()
-    .then_some(())?;
+    .is_some()
+    {
+        return None;
+    }
     let covers = apart < 3.84 * lower_cost.max(1.0);
     for ((e, old), (a, b)) in lower
         .std_errors
