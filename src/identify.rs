@@ -2024,6 +2024,10 @@ fn finish_with_output_error(
     let Some(last) = result.passes.last_mut() else {
         return;
     };
+    // Per parameter, the RMS of its basis function and of its connection's fitted force
+    // over the record (the last pass's fit): the scale [`pem_undetermined`] judges an
+    // error on.
+    let force_scales = last.force_scales.clone();
     let contiguous = data
         .samples
         .windows(2)
@@ -2121,7 +2125,9 @@ fn finish_with_output_error(
                     fallback_words(opts)
                 ));
             }
-            Ok((r, _)) if let Some(why) = pem_undetermined(setup, &r, &values, &scales) => {
+            Ok((r, _))
+                if let Some(why) = pem_undetermined(setup, &r, &values, &scales, &force_scales) =>
+            {
                 result.notes.push(format!(
                     "prediction-error refinement not used: {why}; {}",
                     fallback_words(opts)
