@@ -542,6 +542,38 @@ fn one_dof_mass_on_a_friction_joint_without_a_spring() {
     }
 }
 
+/// The 1-DOF setup at 100 % noise, read as a record in motion (`--in-motion`, the path
+/// the README gives 1-DOF users): the prediction error's descent walked the damper to
+/// 9.0e4 ± 1.1e5 N s/m (truth 20) — the observer followed the record whatever the damper
+/// — and its bootstrap to 4e29 ± 1.5e30, which was printed as the answer. The refinement is
+/// now refused with the figure (the damper's force error against the connection's force),
+/// the exit code is non-zero, and no such value is printed.
+#[test]
+fn a_one_dof_damper_the_innovations_leave_free_is_refused_with_the_figure() {
+    let dir = tempfile::tempdir().unwrap();
+    let setup = repo("recordings/one-dof-friction.toml");
+    let extra = ["--steps", "3000", "--amplitude", "50"];
+    let rec = simulate_with_noise(dir.path(), &setup, "7811", "additive:1.0", &extra);
+    let out = run(&["replay", rec.to_str().unwrap(), "--in-motion"]);
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(!out.status.success(), "{stdout}\n{stderr}");
+    assert!(
+        stdout.contains("`stage.v`") && stdout.contains("leave it free"),
+        "{stdout}"
+    );
+    assert!(stderr.contains("was not usable"), "{stderr}");
+    // The table shows the passes' residual-force estimate, not the refused value.
+    let damper = stdout
+        .lines()
+        .find(|l| l.starts_with("stage") && l.split_whitespace().nth(1) == Some("v"))
+        .expect("the damper's row");
+    let value: f64 = damper.split_whitespace().nth(2).unwrap().parse().unwrap();
+    assert!(value.abs() < 1e3, "{damper}");
+}
+
 /// The shipped friction setup (model at 1 sub-step) replaying continuous-like data (8
 /// Newmark sub-steps, 1 % noise) at `simulate`'s default excitation: the prediction-error
 /// refinement tries every model sub-step level up to 64 and keeps the likeliest. Seeds 5 and
