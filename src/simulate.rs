@@ -1204,7 +1204,7 @@ impl SampleStepper {
 /// Lcᵀ`, as [`LinearSampleMap`]) the sample is `x_i = Φ x_{i−1} + Γ₀ p_{i−1} + Γ₁ p_i + Γ_b b`
 /// with `b` the constant connection forces (`const` terms and `±level`). Whether the
 /// friction does keep its direction is read from the deformation (or rate) of each
-/// sub-step's end, `δ_j`, under that assumption: one `L × 3n` product per friction instead
+/// sub-step's end, `δ_j`, under that assumption: one `L × 2n` product per friction instead
 /// of `L` force solves and an `O(L²)` force history. If every `δ_j` has the slip's sign by
 /// more than the round-off of its terms, the slip at every sub-step is the unique solution
 /// of the implicit sub-step (a set-valued friction with a positive compliance has one:

@@ -265,7 +265,7 @@ pub(super) fn pem_undetermined(
             && se * col > UNDETERMINED_FORCE_RATIO * force
         {
             return Some(format!(
-                "`{}` = {v:.4e} ± {se:.3e}: the error of its force (± {:.3e} N, at the RMS {col:.3e} of its basis function over the record) is {:.1e}× the RMS of the connection's whole force ({force:.3e} N; above {UNDETERMINED_FORCE_RATIO}×): the innovations leave it free (the observer follows the record whatever its value)",
+                "`{}` = {v:.4e} ± {se:.3e}: the error of its force (± {:.3e}, at the RMS {col:.3e} of its basis function over the samples the passes fitted) is {:.1e}× the RMS of the connection's whole force ({force:.3e}; above {UNDETERMINED_FORCE_RATIO}×): the innovations leave it free (the observer follows the record whatever its value; a term the data cannot tell from the others can be dropped from the basis)",
                 keys[j],
                 se * col,
                 se * col / force
@@ -302,14 +302,17 @@ pub(super) fn pem_undetermined(
 }
 
 /// Ratio of a term's force error (its standard error × the RMS of its basis function over
-/// the record) to the RMS of its connection's whole force above which
+/// the samples the last pass fitted) to the RMS of its connection's whole force above which
 /// [`pem_undetermined`] says the innovations do not determine the term. Why: measured on
 /// the 1-DOF setup at 100 % noise (`one-dof-friction.toml`, 3,000 samples, `--in-motion`,
 /// seed 7811): the descent walked the damper to 9.0e4 ± 1.1e5 N s/m (truth 20; its force
 /// error 2,700× the connection's 6.3 N RMS) — the observer followed the record whatever the
-/// damper — and the bootstrap's replicates to 4e29 ± 1.5e30, which was printed as the
-/// answer. Answers that stand stay far below: ≤ 0.06 on the two-beam setups at 100 %
-/// noise, ≤ 0.7 on the 1-DOF's (ACCURACY.md, thirty-seventh session).
+/// damper — and the bootstrap's replicates, simulated from that answer, to a mean shift that
+/// left 4e29 ± 1.5e30 (3.7e28×), which was printed as the answer. Answers that stand stay
+/// far below: ≤ 0.06 on the two-beam setups at 100 % noise, ≤ 0.7 on the 1-DOF's
+/// (ACCURACY.md, thirty-seventh session). Each term is judged alone: terms that are
+/// determined only together (strongly correlated) can each be refused, and the note says
+/// which. Needs the passes' fit: an answer started from a scan (no passes) is not judged.
 const UNDETERMINED_FORCE_RATIO: f64 = 10.0;
 
 /// Standard normal quantile of the false-alarm probability of [`start_motion`] (1e-3: a
