@@ -1612,9 +1612,7 @@ fn identify_once(
     {
         restate_final_errors(setup, &model, data, &sigma, &estimated, sub, &mut result);
     }
-    if result.failure.is_some() {
-        return Ok(result);
-    }
+    // (Also when a later stage failed: the passes' own stop is reported beside the failure.)
     if !result.converged && result.stop_reason.is_empty() {
         let change = result.passes.last().and_then(|p| p.max_change_std_errors);
         result.stop_reason = match change {
