@@ -1279,6 +1279,16 @@ mod tests {
         }
     }
 
+    /// The shipped friction setup (`recordings/two-beam-friction.toml`).
+    fn shipped_friction_setup() -> Setup {
+        let text = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/recordings/two-beam-friction.toml"
+        ))
+        .unwrap();
+        Setup::from_toml(&text, "two-beam-friction.toml").unwrap()
+    }
+
     /// The level ladders of the level choice and of the motion test's confirmation.
     #[test]
     fn doubling_levels_run_from_the_first_to_the_finest_that_fits() {
@@ -1327,12 +1337,7 @@ mod tests {
     /// with finite errors stands.
     #[test]
     fn prediction_error_on_the_friction_bound_is_undetermined() {
-        let text = std::fs::read_to_string(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/recordings/two-beam-friction.toml"
-        ))
-        .unwrap();
-        let setup = Setup::from_toml(&text, "two-beam-friction.toml").unwrap();
+        let setup = shipped_friction_setup();
         let n = setup.param_keys().len();
         let basis: Vec<Basis> = setup.param_basis();
         let f = basis
@@ -1391,12 +1396,7 @@ mod tests {
     /// scales are unknown (no passes' fit).
     #[test]
     fn a_term_whose_force_error_dwarfs_the_connection_force_is_undetermined() {
-        let text = std::fs::read_to_string(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/recordings/two-beam-friction.toml"
-        ))
-        .unwrap();
-        let setup = Setup::from_toml(&text, "two-beam-friction.toml").unwrap();
+        let setup = shipped_friction_setup();
         let keys = setup.param_keys();
         let n = keys.len();
         let (start, start_se) = (vec![1.0; n], vec![0.1; n]);
