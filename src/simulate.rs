@@ -1204,7 +1204,7 @@ impl SampleStepper {
 /// Lcᵀ`, as [`LinearSampleMap`]) the sample is `x_i = Φ x_{i−1} + Γ₀ p_{i−1} + Γ₁ p_i + Γ_b b`
 /// with `b` the constant connection forces (`const` terms and `±level`). Whether the
 /// friction does keep its direction is read from the deformation (or rate) of each
-/// sub-step's end, `δ_j`, under that assumption: one `L × 2n` product per friction instead
+/// sub-step's end, `δ_j`, under that assumption: one `L × 3n` product per friction instead
 /// of `L` force solves and an `O(L²)` force history. If every `δ_j` has the slip's sign by
 /// more than the round-off of its terms, the slip at every sub-step is the unique solution
 /// of the implicit sub-step (a set-valued friction with a positive compliance has one:
@@ -1213,18 +1213,13 @@ impl SampleStepper {
 /// (a reversal or a stick inside the sample, a joint at rest) the sample is stepped by the
 /// force solve.
 struct SlipSampleMap {
-    /// The sample's end state from its inputs `(z; p_{i−1}; p_i; b)` ([`Self::input`]):
-    /// `[Φ_z Γ₀ Γ₁ Γ_b]` side by side ([`crate::dense::side_by_side`]), `Γ_b` the state's
-    /// response to the constant connection forces `b` (`3n × q`). `z = (ũ; ṽ)` are the
-    /// first sub-step's predictors of the start state ([`Self::predictors`]): a Newmark
-    /// sub-step reads the state only through them, `T = W P` ([`newmark_substep_reduced`]),
-    /// so `Φ = Tᴸ = Tᴸ⁻¹ W P` and `Φ_z = Tᴸ⁻¹ W` is `3n × 2n`. Why: the sample's product
-    /// is then `3n × (2n + …)` instead of `3n × (3n + …)` — the prediction error's predictor
-    /// runs spend most of their time in it (BENCHMARKS.md, thirty-seventh session).
+    /// The sample's end state from its inputs `(x; p_{i−1}; p_i; b)` ([`Self::input`]):
+    /// `[Φ Γ₀ Γ₁ Γ_b]` side by side ([`crate::dense::side_by_side`]), `Γ_b` the state's
+    /// response to the constant connection forces `b` (`3n × q`).
     step: DMatrix<f64>,
     /// `δ_j` (or `δ̇_j`) of each friction at the end of sub-step `j = 1…L`, stacked
-    /// (`r` rows per sub-step), from the same inputs: the blocks of the start state's
-    /// predictors `z`, `p_{i−1}`, `p_i` and `b` side by side.
+    /// (`r` rows per sub-step), from the same inputs: the blocks of the start state,
+    /// `p_{i−1}`, `p_i` and `b` side by side.
     check: DMatrix<f64>,
     /// Per check row: the absolute row sums of the four blocks (`Σ|terms| ≤ Σ rowsum·‖·‖∞`,
     /// the scale of its round-off).
@@ -1239,10 +1234,8 @@ struct SlipSampleMap {
     select: Vec<Vec<(usize, f64)>>,
     /// The `const` terms' force per connection.
     const_force: DVector<f64>,
-    /// The inputs side by side, `(z; p_{i−1}; p_i; b)` (`2n + 2 ne + q`).
+    /// The inputs side by side, `(x; p_{i−1}; p_i; b)` (`3n + 2 ne + q`).
     input: DVector<f64>,
-    /// The predictors' coefficients `(h, (½−β)h², (1−γ)h)` of the sub-step `h`.
-    predictors: (f64, f64, f64),
     /// Excitation channels `ne`.
     ne: usize,
     /// Work vectors.
@@ -1317,7 +1310,6 @@ impl SlipSampleMap {
         B.columns_mut(0, ne).copy_from(&model.Lp);
         B.columns_mut(ne, q).copy_from(&(-lc));
         let (T, Q) = newmark_substep_map(&meff_inv, &C, &K, &B, h, gamma, beta);
-        let W = newmark_substep_reduced(&meff_inv, &C, &K, h, gamma, beta);
         let (Qp, Qb) = (Q.columns(0, ne).into_owned(), Q.columns(ne, q).into_owned());
         let r = friction.len();
         let mut select = DMatrix::zeros(r, 3 * n);
@@ -1336,7 +1328,7 @@ impl SlipSampleMap {
             })
             .collect();
         let L = substeps;
-        let mut check_state = DMatrix::zeros(r * L, 2 * n);
+        let mut check_state = DMatrix::zeros(r * L, 3 * n);
         let mut check_p0 = DMatrix::zeros(r * L, ne);
         let mut check_p1 = DMatrix::zeros(r * L, ne);
         let mut check_b = DMatrix::zeros(r * L, q);
@@ -1346,16 +1338,12 @@ impl SlipSampleMap {
         let mut gb = DMatrix::<f64>::zeros(3 * n, q);
         for j in 1..=L {
             let t = j as f64 / L as f64;
-            // `select Tʲ⁻¹ W`: the sub-step's `δ` from the start state's predictors.
-            let s_z = product(&s, &W);
-            if j < L {
-                s = product(&s, &T);
-            }
+            s = product(&s, &T);
             g0 = product(&T, &g0) + &Qp * (1.0 - t);
             g1 = product(&T, &g1) + &Qp * t;
             gb = product(&T, &gb) + &Qb;
             let rows = (r * (j - 1), 0);
-            check_state.view_mut(rows, (r, 2 * n)).copy_from(&s_z);
+            check_state.view_mut(rows, (r, 3 * n)).copy_from(&s);
             check_p0
                 .view_mut(rows, (r, ne))
                 .copy_from(&product(&select, &g0));
@@ -1380,18 +1368,17 @@ impl SlipSampleMap {
         let largest_row_sums = row_sums.iter().fold([0.0f64; 4], |acc, s| {
             std::array::from_fn(|k| acc[k].max(s[k]))
         });
-        let phi_z = product(&matrix_power(T, L - 1), &W);
+        let phi = matrix_power(T, L);
         use crate::dense::side_by_side;
         Ok(Some(Self {
             largest_row_sums,
-            step: side_by_side(&[&phi_z, &g0, &g1, &gb]),
+            step: side_by_side(&[&phi, &g0, &g1, &gb]),
             check: side_by_side(&[&check_state, &check_p0, &check_p1, &check_b]),
             row_sums,
             friction,
             select: select_taps,
             const_force,
-            input: DVector::zeros(2 * n + 2 * ne + q),
-            predictors: (h, (0.5 - beta) * h * h, (1.0 - gamma) * h),
+            input: DVector::zeros(3 * n + 2 * ne + q),
             ne,
             checks: DVector::zeros(r * L),
             next: DVector::zeros(3 * n),
@@ -1407,24 +1394,18 @@ impl SlipSampleMap {
         let n = s.u.len();
         let ne = self.ne;
         let input = self.input.as_mut_slice();
-        let (z, rest) = input.split_at_mut(2 * n);
+        let (x, rest) = input.split_at_mut(3 * n);
         let (p0, rest) = rest.split_at_mut(ne);
         let (p1, b) = rest.split_at_mut(ne);
-        // The predictors as [`crate::integrate::Stepper::advance`] computes them.
-        let (h, ca, cv) = self.predictors;
-        let (zu, zv) = z.split_at_mut(n);
-        for k in 0..n {
-            let (u, v, a) = (s.u[k], s.v[k], s.a[k]);
-            zu[k] = ca * a + (h * v + u);
-            zv[k] = cv * a + v;
-        }
+        x[..n].copy_from_slice(s.u.as_slice());
+        x[n..2 * n].copy_from_slice(s.v.as_slice());
+        x[2 * n..].copy_from_slice(s.a.as_slice());
         b.copy_from_slice(self.const_force.as_slice());
-        let state = [s.u.as_slice(), s.v.as_slice(), s.a.as_slice()];
         for (i, &(ci, _, level)) in self.friction.iter().enumerate() {
             // `-0.0 + …` as the dense row's `Iterator::sum` started.
             let now = self.select[i]
                 .iter()
-                .fold(-0.0, |acc, &(j, coef)| acc + coef * state[j / n][j % n]);
+                .fold(-0.0, |acc, &(j, coef)| acc + coef * x[j]);
             if now == 0.0 || !now.is_finite() {
                 return false;
             }
@@ -1436,7 +1417,7 @@ impl SlipSampleMap {
             p0[j] = pa.get(j).copied().unwrap_or(0.0);
             p1[j] = pb.get(j).copied().unwrap_or(0.0);
         }
-        let norms = [amax(z), amax(p0), amax(p1), b_max];
+        let norms = [amax(x), amax(p0), amax(p1), b_max];
         crate::dense::gemv(
             &mut self.checks,
             &self.check,
@@ -1535,34 +1516,6 @@ fn newmark_substep_map(
     );
     let Q = stack(&(&Ba * (beta * h * h)), &(&Ba * (gamma * h)), &Ba);
     (T, Q)
-}
-
-/// The reduced form `W` (`3n × 2n`) of a Newmark sub-step's state map `T` of
-/// [`newmark_substep_map`]: `T = W P`, `P` the map `(u; u̇; ü) ↦ (ũ; ṽ)` of the sub-step's
-/// predictors ([`crate::integrate::Stepper::predictor_map`]). With `Ã = −M_eff⁻¹ [K C]`:
-/// `W = ([I 0] + βh² Ã; [0 I] + γh Ã; Ã)`.
-fn newmark_substep_reduced(
-    meff_inv: &DMatrix<f64>,
-    C: &DMatrix<f64>,
-    K: &DMatrix<f64>,
-    h: f64,
-    gamma: f64,
-    beta: f64,
-) -> DMatrix<f64> {
-    let n = K.nrows();
-    let mut a = DMatrix::zeros(n, 2 * n);
-    a.columns_mut(0, n).copy_from(&-(meff_inv * K));
-    a.columns_mut(n, n).copy_from(&-(meff_inv * C));
-    let mut w = DMatrix::zeros(3 * n, 2 * n);
-    w.view_mut((0, 0), (n, 2 * n))
-        .copy_from(&(&a * (beta * h * h)));
-    w.view_mut((n, 0), (n, 2 * n))
-        .copy_from(&(&a * (gamma * h)));
-    w.view_mut((2 * n, 0), (n, 2 * n)).copy_from(&a);
-    for i in 0..2 * n {
-        w[(i, i)] += 1.0;
-    }
-    w
 }
 
 /// The `L` Newmark sub-steps of one sample composed around the connection forces: the
