@@ -545,7 +545,7 @@ fn one_dof_mass_on_a_friction_joint_without_a_spring() {
 /// The 1-DOF setup at 100 % noise, read as a record in motion (`--in-motion`, the path
 /// the README gives 1-DOF users): the prediction error's descent walked the damper to
 /// 9.0e4 ± 1.1e5 N s/m (truth 20) — the observer followed the record whatever the damper
-/// — and its bootstrap to 4e29 ± 1.5e30, which was printed as the answer. The refinement is
+/// — and its bootstrap to 5.4e30 ± 2.1e31, which was printed as the answer. The refinement is
 /// now refused with the figure (the damper's force error against the connection's force),
 /// the exit code is non-zero, and no such value is printed.
 #[test]

@@ -308,7 +308,7 @@ pub(super) fn pem_undetermined(
 /// seed 7811): the descent walked the damper to 9.0e4 ± 1.1e5 N s/m (truth 20; its force
 /// error 2,700× the connection's 6.3 N RMS) — the observer followed the record whatever the
 /// damper — and the bootstrap's replicates, simulated from that answer, to a mean shift that
-/// left 4e29 ± 1.5e30 (3.7e28×), which was printed as the answer. Answers that stand stay
+/// left 5.4e30 ± 2.1e31 (5.0e29×), which was printed as the answer. Answers that stand stay
 /// far below: ≤ 0.06 on the two-beam setups at 100 % noise, ≤ 0.7 on the 1-DOF's
 /// (ACCURACY.md, thirty-seventh session). Each term is judged alone: terms that are
 /// determined only together (strongly correlated) can each be refused, and the note says
