@@ -565,6 +565,17 @@ fn a_one_dof_damper_the_innovations_leave_free_is_refused_with_the_figure() {
         "{stdout}"
     );
     assert!(stderr.contains("was not usable"), "{stderr}");
+    // The passes' own stop is reported beside the failure (it was an empty line).
+    let stop = stdout
+        .lines()
+        .find(|l| l.contains(" pass(es): "))
+        .expect("the passes' line");
+    assert!(
+        stop.split(" pass(es): ")
+            .nth(1)
+            .is_some_and(|r| !r.trim().is_empty()),
+        "{stop}"
+    );
     // The table shows the passes' residual-force estimate, not the refused value.
     let damper = stdout
         .lines()
