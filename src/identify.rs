@@ -2891,11 +2891,8 @@ fn raise_substeps(
     // two-beam Coulomb and gap setups none was taken over 570 records (ACCURACY.md,
     // thirty-eighth session).
     let mut continued: Vec<String> = Vec::new();
-    while !linear {
-        let next = sub * 2;
-        if next > cap || data.len() * next > MAX_RAISED_STEPS {
-            break;
-        }
+    let mut next = sub * 2;
+    while !linear && next <= cap && data.len() * next <= MAX_RAISED_STEPS {
         let Ok(finer) = crate::estimate::output_error::refine(
             setup,
             model,
@@ -2921,6 +2918,7 @@ fn raise_substeps(
         coarser = Some(std::mem::replace(&mut r, finer).values);
         sub = next;
         settled = false;
+        next = sub * 2;
     }
     if !continued.is_empty() {
         notes.push(format!(
