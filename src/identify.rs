@@ -2723,9 +2723,10 @@ const MAX_RAISED_LEVEL: usize = 64;
 /// setup's level and every doubling of it (except the level refined at, coarser ones
 /// included when the scan fallback refined at a finer one) up to [`MAX_RAISED_LEVEL`] (or
 /// 8× the setup's) and
-/// [`MAX_RAISED_STEPS`]; when the likeliest level lowers it significantly (by more than 3
-/// standard deviations of a χ², `3√(2Nm)`), the refinement is redone at the coarsest level
-/// within that of it.
+/// [`MAX_RAISED_STEPS`]; when the likeliest level lowers it by more than Δχ² = 1, the
+/// refinement is redone at the coarsest level within that of it. For a law not linear in the
+/// state the doublings are then refined by continuation, each from the last answer, while
+/// one lowers the cost by more than that (see the loop's comment).
 #[allow(clippy::too_many_arguments)]
 fn raise_substeps(
     setup: &Setup,
