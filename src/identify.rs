@@ -2642,12 +2642,23 @@ fn free_run_from_observer_answer(
         "{}; taken from a free run started at the prediction error's answer (an observer-corrected descent from the same start), asked by residuals that were not white (normalised cost {cost:.4} → {lower_cost:.4}; before it: {})",
         lower.report.note, answer.report.note
     );
-    lower.report.cost_start = answer.report.cost_start;
-    lower.report.start_values = answer.report.start_values.clone();
-    lower.report.iterations += answer.report.iterations;
-    lower.report.scan = answer.report.scan.clone();
+    take_over_start(&mut lower, answer);
     lower.report.accepted = true;
     Some(lower)
+}
+
+/// `into`, a free run that replaces `from` as the answer, takes over what `from`'s report
+/// says of the refinement as a whole: where it started (`cost_start`, `start_values`: the
+/// residual-force estimate, which the caller's rules compare against), the iterations
+/// spent, the scan's minima.
+fn take_over_start(
+    into: &mut crate::estimate::output_error::Refined,
+    from: &crate::estimate::output_error::Refined,
+) {
+    into.report.cost_start = from.report.cost_start;
+    into.report.start_values = from.report.start_values.clone();
+    into.report.iterations += from.report.iterations;
+    into.report.scan = from.report.scan.clone();
 }
 
 /// The whiteness test of the maximum-likelihood fit (a Box–Pierce portmanteau per channel
@@ -2809,7 +2820,9 @@ fn raise_substeps(
         )
     };
     let mut refined_at: Vec<(usize, crate::estimate::output_error::Refined)> = Vec::new();
-    while l <= cap && (linear || data.len() * l <= MAX_RAISED_STEPS) {
+    // The step budget of a law not linear in the state: simulated sub-steps per run.
+    let within_budget = |level: usize| data.len().saturating_mul(level) <= MAX_RAISED_STEPS;
+    while l <= cap && (linear || within_budget(l)) {
         if l == opts.substeps {
             l *= 2;
             continue;
@@ -2888,12 +2901,14 @@ fn raise_substeps(
     // 7813): at the 1-sub-step minimum (`const` 12.9 errors off) the finer levels cost
     // 0.578–0.663 against its 0.528; refined from it, 2 sub-steps cost 0.5229 and 4 cost
     // 0.5227 (every parameter within 1.8 errors), 8 no less. A linear law was refined
-    // afresh at every level above. Each doubling runs one descent (the budget below); on the
-    // two-beam Coulomb and gap setups none was taken over 570 records (ACCURACY.md,
-    // thirty-eighth session).
+    // afresh at every level above. Each doubling runs one descent (at most the step budget
+    // per run); on the two-beam Coulomb setup none was taken over 450 records (ACCURACY.md,
+    // thirty-eighth session). A plain descent, not `refine_global`'s scan: it follows the
+    // minimum as the model is refined; the screening above is the global search.
     let mut continued: Vec<String> = Vec::new();
+    let first_note = r.report.note.clone();
     let mut next = sub * 2;
-    while !linear && next <= cap && data.len() * next <= MAX_RAISED_STEPS {
+    while !linear && next <= cap && within_budget(next) {
         let Ok(finer) = crate::estimate::output_error::refine(
             setup,
             model,
@@ -2907,8 +2922,15 @@ fn raise_substeps(
         ) else {
             break;
         };
-        let gain = (r.report.cost_end - finer.report.cost_end) * nobs;
-        if !(finer.report.accepted && finer.report.cost_end < r.report.cost_end - significant) {
+        // (A cost that is not finite decides nothing: the loop stops unsettled, as on an
+        // error. `accepted` is not asked: from a start that already costs less at the finer
+        // level, a descent that takes no step is "not accepted" and still the better fit.)
+        let (cost, finer_cost) = (r.report.cost_end, finer.report.cost_end);
+        if !finer_cost.is_finite() {
+            break;
+        }
+        let gain = (cost - finer_cost) * nobs;
+        if !(finer_cost < cost - significant) {
             if !continued.is_empty() {
                 continued.push(format!("{next}: Δχ² = {gain:.1}, not taken"));
             }
@@ -2916,6 +2938,16 @@ fn raise_substeps(
             break;
         }
         continued.push(format!("{next}: Δχ² = {gain:.1}"));
+        let mut finer = finer;
+        // The report describes the whole refinement (its start, its iterations, the scan's
+        // minima); the errors are the finer model's own (the coarser answer's belong to a
+        // model the record rejects by Δχ² > 1).
+        take_over_start(&mut finer, &r);
+        finer.report.note = format!(
+            "{}; raised by continuation to {next} model sub-steps: {}",
+            first_note, finer.report.note
+        );
+        finer.report.accepted = true;
         coarser = Some(std::mem::replace(&mut r, finer).values);
         sub = next;
         settled = false;
