@@ -2930,7 +2930,7 @@ fn raise_substeps(
             break;
         }
         let gain = (cost - finer_cost) * nobs;
-        if !(finer_cost < cost - significant) {
+        if finer_cost >= cost - significant {
             if !continued.is_empty() {
                 continued.push(format!("{next}: Δχ² = {gain:.1}, not taken"));
             }
