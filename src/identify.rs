@@ -2902,7 +2902,7 @@ fn raise_substeps(
     // 0.578–0.663 against its 0.528; refined from it, 2 sub-steps cost 0.5229 and 4 cost
     // 0.5227 (every parameter within 1.8 errors), 8 no less. A linear law was refined
     // afresh at every level above. Each doubling runs one descent (at most the step budget
-    // per run); on the two-beam Coulomb setup none was taken over 450 records (ACCURACY.md,
+    // per run); on the two-beam Coulomb setup it took none in 400 records (ACCURACY.md,
     // thirty-eighth session). A plain descent, not `refine_global`'s scan: it follows the
     // minimum as the model is refined; the screening above is the global search.
     let mut continued: Vec<String> = Vec::new();
