@@ -2764,9 +2764,10 @@ fn raise_substeps(
     // χ² (0.039), and moved the spring from +0.40 % (4.0 se) to −0.04 %. Every level has the
     // same parameters, so the likelihood alone decides between them: Δχ² > 1 for every law
     // (non-linear laws kept the 3σ threshold until the thirty-eighth session, as a
-    // refinement budget; the budget is [`MAX_RAISED_STEPS`], and on the 1-DOF setup the 3σ
-    // threshold — Δχ² = 329 there — left answers 93 and 206 errors off whose finer models
-    // cost Δχ² = 28–60 less; ACCURACY.md, thirty-eighth session).
+    // refinement budget — the per-run budget is [`MAX_RAISED_STEPS`]; measured since: on
+    // 64-sub-step data at 100 % noise the 3σ rule, Δχ² = 657 there, took 32 sub-steps where
+    // 64 cost Δχ² = 186 less (Coulomb seed 7730; gap seed 7510: 120); ACCURACY.md,
+    // thirty-eighth session).
     let significant = 1.0 / nobs;
     let mut sub = opts.substeps;
     // The estimate one doubling coarser than `r`, and whether a finer level than the one
