@@ -116,10 +116,10 @@ fn default_identifies_the_spring_on_own_discretisation_data() {
 /// Continuous-time data (64 Newmark sub-steps per sample on the full model) with 10 %
 /// additive noise, identified on the reduced model with 16 sub-steps, Coulomb friction +
 /// spring: friction within 5 % and spring within 1 % (measured seeds 1–3: friction +0.02,
-/// +1.5, +0.8 %; spring −0.10, +0.22, −0.09 %; seed 1, the one run here, −0.91 % and
-/// −0.15 % since the thirty-eighth session, when the free run's model sub-steps came to be
-/// chosen at Δχ² > 1 and raised by continuation), where the paper's estimator has ρ in the
-/// tens of thousands and is off by over 100 %.
+/// +1.5, +0.8 %; spring −0.10, +0.22, −0.09 %, on an older build; seed 1, the one run
+/// here, −0.91 % and −0.15 % on the thirty-seventh and thirty-eighth sessions' builds
+/// alike), where the paper's estimator has ρ in the tens of thousands and is off by over
+/// 100 %.
 #[test]
 fn default_identifies_friction_and_spring_on_noisy_continuous_data() {
     let s = setup("two-beam-fifty-friction.toml", 16);
