@@ -813,7 +813,8 @@ pub(super) fn identify_from_scan(
     // +24 %, cost 0.97, and none near the truth; with 64 the truth, cost 0.40). The
     // sub-step raise of the output-error stage judged the levels only at the minima found,
     // where finer steps do not help (since the thirty-eighth session it also refines the
-    // doublings by continuation from the answer, a local search). So: scan with the setup's sub-steps and each doubling up to 8×
+    // doublings by continuation from the answer, a local search). So: scan with the setup's
+    // sub-steps and each doubling up to 8×
     // (within `MAX_RAISED_STEPS` over the record) and keep the level and start of the lowest
     // prefix cost (data of the model's own discretisation pick the setup's, continuous data
     // a finer one). Measured with a rule that then coarsened the level while the
