@@ -126,11 +126,11 @@ fn main() -> anyhow::Result<()> {
                 time += took;
                 times.push(took);
                 if let Ok(id) = &r
-                    && id
-                        .output_error
-                        .as_ref()
-                        .and_then(|o| o.prediction_error.as_ref())
-                        .is_some_and(|p| p.bootstrap.is_some())
+                    && let Some(o) = id.output_error.as_ref()
+                    && (o.bootstrap.is_some()
+                        || o.prediction_error
+                            .as_ref()
+                            .is_some_and(|p| p.bootstrap.is_some()))
                 {
                     bootstrapped += 1;
                 }

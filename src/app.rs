@@ -237,8 +237,8 @@ pub struct ReplayRequest {
     pub no_refine: bool,
     /// Write SVG plots here (`--plots DIR`, see [`crate::report`]).
     pub plots: Option<PathBuf>,
-    /// Replicates of the parametric bootstrap of a prediction-error answer (`--bootstrap N`,
-    /// 0: none; `None`: automatic, see `IdentifyOptions::bootstrap`).
+    /// Replicates of the parametric bootstrap of a refined answer (`--bootstrap N`, 0: none;
+    /// `None`: automatic for a prediction-error answer, see `IdentifyOptions::bootstrap`).
     pub bootstrap: Option<usize>,
     /// The record starts in motion (`--in-motion`: cut from a running test): its start state
     /// is estimated whatever its first sample reads (`IdentifyOptions::in_motion`).

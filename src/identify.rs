@@ -43,6 +43,7 @@ use crate::model::Model;
 use crate::setup::{Basis, EstimatorKind, Quantity, Setup, Weighting};
 use crate::track::{Track, TrackOptions, Tracker};
 
+mod bootstrap;
 mod pem;
 mod scan;
 
@@ -292,7 +293,9 @@ pub struct IdentifyOptions {
     /// `None`: automatic, [`pem::AUTO_BOOTSTRAP_REPLICATES`] when the excitation repeats
     /// itself or was found smooth between samples, the sandwich depends on its secant
     /// ([`pem::BOOTSTRAP_SECANT_DISAGREEMENT`]) or the law has a friction on the rate, and
-    /// none otherwise; see `identify::pem::bootstrap_occasion` and `identify::pem::bootstrap`).
+    /// none otherwise; see `identify::pem::bootstrap_occasion` and `identify::pem::bootstrap`)
+    /// and of a free-run output-error answer (only when asked: `None` runs none there; see
+    /// `identify::bootstrap`).
     pub bootstrap: Option<usize>,
     /// Options of the maximum-likelihood estimator (`EstimatorKind::Ml`).
     pub ml: crate::estimate::ml::MlOptions,
@@ -1299,13 +1302,14 @@ pub fn identify(
     on_sample: &mut dyn FnMut(usize, &StepOutput),
 ) -> Result<Identification, IdentifyError> {
     let first = identify_once(setup, data, opts, truth, on_pass, on_sample)?;
+    let mut again = None;
     let mut result = match first.motion_in_record {
         Some(m) if opts.start_motion.is_none() && opts.initial_state.is_none() => {
-            let again = IdentifyOptions {
+            let again = again.insert(IdentifyOptions {
                 start_motion: Some(m),
                 ..opts.clone()
-            };
-            identify_once(setup, data, &again, truth, on_pass, on_sample).map_err(|e| match e {
+            });
+            identify_once(setup, data, again, truth, on_pass, on_sample).map_err(|e| match e {
                 // A law the run again cannot handle in motion: that refusal alone.
                 IdentifyError::MotionInRecord { .. } => e,
                 e => IdentifyError::MotionInRecordRefused {
@@ -1318,15 +1322,18 @@ pub fn identify(
         }
         _ => first,
     };
-    // `--bootstrap` belongs to the prediction-error refinement (`sign(u)` laws, friction
-    // laws in motion): said rather than ignored without a word.
-    let by_prediction_error = result
+    // The free run's answer of a friction law: its own parametric bootstrap, when asked
+    // for or automatic (see `bootstrap`).
+    bootstrap::free_run_bootstrap(setup, data, again.as_ref().unwrap_or(opts), &mut result);
+    // `--bootstrap` belongs to the prediction-error refinement and to the free run of a
+    // friction law: said rather than ignored without a word.
+    let bootstrapped = result
         .output_error
         .as_ref()
-        .is_some_and(|o| o.prediction_error.is_some());
-    if !has_sign_u_basis(setup) && !by_prediction_error && opts.bootstrap.is_some_and(|n| n > 0) {
+        .is_some_and(|o| o.prediction_error.is_some() || o.bootstrap.is_some());
+    if !has_sign_u_basis(setup) && !bootstrapped && opts.bootstrap.is_some_and(|n| n > 0) {
         result.notes.push(
-            "`--bootstrap` not run: the parametric bootstrap belongs to the prediction-error refinement (of `sign(u)` laws, and of friction laws on records in motion); this law's errors are its estimator's own (maximum likelihood's, or the free-run output error's scaled bound, widened for a misfit or a rough cost)".into(),
+            "`--bootstrap` not run: the parametric bootstrap belongs to the output-error refinements (the prediction error's, of `sign(u)` laws and of friction laws on records in motion, and the free run's), which did not give this answer; its errors are its estimator's own".into(),
         );
     }
     Ok(result)
@@ -2300,6 +2307,8 @@ fn finish_with_output_error(
                     rough: false,
                     scan: None,
                     prediction_error: Some(r.report),
+                    secant_disagreement: None,
+                    bootstrap: None,
                 });
                 return;
             }
@@ -2893,70 +2902,120 @@ fn raise_substeps(
             }
         }
     }
-    // Continuation (laws not linear in the state): from the answer, the next doubling is
-    // refined again starting at it, and taken while it lowers the cost by more than
-    // `significant`. Why: the levels above were judged by their cost at the minima found
-    // with the coarser model, and such a minimum has moved to compensate that model's
-    // discretisation error — at it every finer model costs more, although refined they
-    // cost less. Measured (1-DOF `v, sign(v), const`, 8-sub-step data, 10 % noise, seed
-    // 7813): at the 1-sub-step minimum (`const` 12.9 errors off) the finer levels cost
+    // Continuation (laws not linear in the state): from the answer, every doubling up to
+    // the cap (within the step budget) is refined again, each starting at the last one's
+    // answer, and the finest level whose refined cost is within `significant` of the
+    // lowest is taken. Why refined: the levels above were judged by their cost at the
+    // minima found with the coarser model, and such a minimum has moved to compensate that
+    // model's discretisation error — at it every finer model costs more, although refined
+    // they cost less. Measured (1-DOF `v, sign(v), const`, 8-sub-step data, 10 % noise,
+    // seed 7813): at the 1-sub-step minimum (`const` 12.9 errors off) the finer levels cost
     // 0.578–0.663 against its 0.528; refined from it, 2 sub-steps cost 0.5229 and 4 cost
-    // 0.5227 (every parameter within 1.8 errors), 8 no less. A linear law was refined
-    // afresh at every level above. Each doubling runs one descent (at most the step budget
-    // per run); on the two-beam Coulomb setup it took none in 400 records (ACCURACY.md,
-    // thirty-eighth session). A plain descent, not `refine_global`'s scan: it follows the
-    // minimum as the model is refined; the screening above is the global search.
+    // 0.5227 (every parameter within 1.8 errors), 8 no less.
+    //
+    // Why every doubling, not only while one helps (the thirty-eighth session's loop): the
+    // refined cost is not monotone in the sub-steps either (a Newmark model resonates with
+    // the data's own scheme). Measured (the same setup, 64-sub-step data, 1 % noise, seed
+    // 7811): refined from the 1-sub-step answer (`const` 4 errors off, χ² 2950.6), 2
+    // sub-steps cost 2957.4 and the loop stopped there, while 4 cost 2932.3 and 32 2931.4.
+    //
+    // Why the finest within Δχ² = 1 and not the coarsest (the screening's rule above, a
+    // budget there): levels the likelihood cannot tell apart fit the record equally well
+    // with different parameters — the coarser one's compensating its discretisation error —
+    // and the structure is continuous, so the finer model is the one whose parameters mean
+    // what they say. Measured (seed 7816, 64-sub-step data, 1 %): 1 sub-step χ² 3152.8 at
+    // `v` +3.9 errors, 8 sub-steps 3152.1 at +1.1. (ACCURACY.md, thirty-ninth session.)
+    //
+    // A linear law was refined afresh at every level above. A plain descent, not
+    // `refine_global`'s scan: it follows the minimum as the model is refined; the screening
+    // above is the global search.
     let mut continued: Vec<String> = Vec::new();
-    let first_note = r.report.note.clone();
-    let mut next = sub * 2;
-    while !linear && next <= cap && within_budget(next) {
-        let Ok(finer) = crate::estimate::output_error::refine(
-            setup,
-            model,
-            &r.values,
-            scales,
-            &data.excitation,
-            &data.response,
-            sigma,
-            next,
-            opts.output_error_iterations,
-        ) else {
-            break;
-        };
-        // (A cost that is not finite decides nothing: the loop stops unsettled, as on an
-        // error. `accepted` is not asked: from a start that already costs less at the finer
-        // level, a descent that takes no step is "not accepted" and still the better fit.)
-        let (cost, finer_cost) = (r.report.cost_end, finer.report.cost_end);
-        if !finer_cost.is_finite() {
-            break;
-        }
-        let gain = (cost - finer_cost) * nobs;
-        if finer_cost >= cost - significant {
-            if !continued.is_empty() {
-                continued.push(format!("{next}: Δχ² = {gain:.1}, not taken"));
+    if !linear {
+        let first_note = r.report.note.clone();
+        let base_cost = r.report.cost_end;
+        let mut tried: Vec<(usize, crate::estimate::output_error::Refined)> = Vec::new();
+        let mut next = sub * 2;
+        while next <= cap && within_budget(next) {
+            let from = tried.last().map_or(&r.values, |t| &t.1.values);
+            let Ok(finer) = crate::estimate::output_error::refine(
+                setup,
+                model,
+                from,
+                scales,
+                &data.excitation,
+                &data.response,
+                sigma,
+                next,
+                opts.output_error_iterations,
+            ) else {
+                break;
+            };
+            // (A cost that is not finite decides nothing: the levels stop there. `accepted`
+            // is not asked: from a start that already costs less at the finer level, a
+            // descent that takes no step is "not accepted" and still the better fit.)
+            if !finer.report.cost_end.is_finite() {
+                break;
             }
-            settled = true;
-            break;
+            tried.push((next, finer));
+            next *= 2;
         }
-        continued.push(format!("{next}: Δχ² = {gain:.1}"));
-        let mut finer = finer;
-        // The report describes the whole refinement (its start, its iterations, the scan's
-        // minima); the errors are the finer model's own (the coarser answer's belong to a
-        // model the record rejects by Δχ² > 1).
-        take_over_start(&mut finer, &r);
-        finer.report.note = format!(
-            "{}; raised by continuation to {next} model sub-steps: {}",
-            first_note, finer.report.note
-        );
-        finer.report.accepted = true;
-        coarser = Some(std::mem::replace(&mut r, finer).values);
-        sub = next;
-        settled = false;
-        next = sub * 2;
+        let lowest = tried
+            .iter()
+            .map(|t| t.1.report.cost_end)
+            .fold(base_cost, f64::min);
+        // The finest level within `significant` of the lowest cost, or none when that is
+        // the answer's own level (no finer one within it).
+        let taken = tried
+            .iter()
+            .rposition(|t| t.1.report.cost_end <= lowest + significant);
+        for (i, (level, finer)) in tried.iter().enumerate() {
+            let gain = (base_cost - finer.report.cost_end) * nobs;
+            continued.push(format!(
+                "{level}: Δχ² = {gain:.1}{}",
+                if taken == Some(i) { ", taken" } else { "" }
+            ));
+        }
+        match taken {
+            // A finer level was tried and did not help: the sub-steps have converged.
+            None => settled = settled || !tried.is_empty(),
+            Some(i) => {
+                settled = i + 1 < tried.len();
+                let others: usize = tried
+                    .iter()
+                    .enumerate()
+                    .filter(|(j, _)| *j != i)
+                    .map(|(_, t)| t.1.report.iterations)
+                    .sum();
+                // One doubling coarser than the level taken (the first is `r`'s double).
+                let previous = if i == 0 {
+                    r.values.clone()
+                } else {
+                    tried[i - 1].1.values.clone()
+                };
+                let (level, mut finer) = tried.swap_remove(i);
+                // The report describes the whole refinement (its start, its iterations, the
+                // scan's minima); the errors are the finer model's own (the coarser answer's
+                // belong to a model the record rejects by Δχ² > 1).
+                take_over_start(&mut finer, &r);
+                finer.report.iterations += others;
+                finer.report.note = format!(
+                    "{}; raised by continuation to {level} model sub-steps: {}",
+                    first_note, finer.report.note
+                );
+                finer.report.accepted = true;
+                r = finer;
+                coarser = Some(previous);
+                sub = level;
+            }
+        }
     }
-    if !continued.is_empty() {
+    if continued.iter().any(|c| c.ends_with(", taken")) {
         notes.push(format!(
-            "model sub-steps raised by continuation to {sub} per sample: each doubling refined from the last answer and taken while it lowered the cost by Δχ² > {:.0} ({}); the finer levels' costs at the coarser minimum had not shown it (that minimum compensates the coarser model's discretisation error)",
+            "model sub-steps raised by continuation to {sub} per sample: every doubling up to {} refined from the one before, the finest within Δχ² = {:.0} of the lowest cost taken ({}); the finer levels' costs at the coarser minimum had not shown it (that minimum compensates the coarser model's discretisation error)",
+            continued
+                .last()
+                .and_then(|c| c.split(':').next())
+                .unwrap_or("the cap"),
             significant * nobs,
             continued.join("; ")
         ));

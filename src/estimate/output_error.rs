@@ -67,6 +67,15 @@ pub struct OutputErrorReport {
     /// see [`super::prediction_error`]): its observer tuning and sandwich errors.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub prediction_error: Option<super::prediction_error::PredictionErrorReport>,
+    /// The largest ratio, over the parameters, between the final errors' sandwiches over
+    /// secants of ±1 and ±8 standard errors (`identify::scan::restate_final_errors`, laws
+    /// with a `sign` term): 1 when the cost is linear in the parameters over their errors.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub secant_disagreement: Option<f64>,
+    /// The free run's parametric bootstrap, when asked for or automatic
+    /// (`identify::free_run_bootstrap`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub bootstrap: Option<super::prediction_error::BootstrapReport>,
 }
 
 fn is_sign(b: &Basis) -> bool {
@@ -410,6 +419,8 @@ pub fn refine(
             scan: None,
             rough: false,
             prediction_error: None,
+            secant_disagreement: None,
+            bootstrap: None,
         },
     })
 }

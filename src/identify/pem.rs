@@ -1110,7 +1110,7 @@ pub(crate) fn student_t_975(nu: usize) -> f64 {
 }
 
 /// Seed of the bootstrap's synthetic noise (fixed: the same record gives the same answer).
-const BOOTSTRAP_SEED: u64 = 0x0062_6f6f_7473;
+pub(super) const BOOTSTRAP_SEED: u64 = 0x0062_6f6f_7473;
 
 /// Parametric bootstrap of the prediction-error answer `r`: `replicates` records of the
 /// model at `r`'s values driven by the record's excitation (`data`'s, as the model

@@ -1205,6 +1205,7 @@ pub(super) fn restate_final_errors(
     let np = values.len();
     let mut bound: Option<Vec<f64>> = None;
     let mut widest: Option<Vec<f64>> = None;
+    let mut per_secant: Vec<Vec<f64>> = Vec::with_capacity(runs.len());
     for sens in &runs {
         let mut A = DMatrix::<f64>::zeros(np, np);
         let mut B = DMatrix::<f64>::zeros(np, np);
@@ -1231,6 +1232,7 @@ pub(super) fn restate_final_errors(
         if !e.iter().all(|x| x.is_finite()) {
             continue;
         }
+        per_secant.push(e.clone());
         widest = Some(match widest {
             Some(x) => x.iter().zip(&e).map(|(a, c)| a.max(*c)).collect(),
             None => e,
@@ -1291,8 +1293,12 @@ pub(super) fn restate_final_errors(
         "noise levels as given (`noise_std`)".to_string()
     };
     if sign_law {
+        let disagreement = secant_disagreement(&per_secant);
+        if let Some(report) = result.output_error.as_mut() {
+            report.secant_disagreement = Some(disagreement);
+        }
         result.notes.push(format!(
-            "final standard errors: {noise_words}; the sandwich of the fit at those levels, for the `sign` law the larger over secants of ±1 and ±8 standard errors (× {} the refinement's own)",
+            "final standard errors: {noise_words}; the sandwich of the fit at those levels, for the `sign` law the larger over secants of ±1 and ±8 standard errors (× {} the refinement's own; the two secants' differ up to {disagreement:.2}×)",
             ratios
                 .iter()
                 .map(|x| format!("{x:.2}"))
@@ -1304,6 +1310,18 @@ pub(super) fn restate_final_errors(
             "accelerations only: {noise_words}; standard errors (the sandwich of the fit at those levels) and bounds restated with them"
         ));
     }
+}
+
+/// The largest ratio (either way) between the errors of two secants' sandwiches, over the
+/// parameters: 1 when the cost is linear in the parameters over the wider secant.
+fn secant_disagreement(per_secant: &[Vec<f64>]) -> f64 {
+    let (Some(a), Some(b)) = (per_secant.first(), per_secant.get(1)) else {
+        return 1.0;
+    };
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x / y).max(y / x))
+        .fold(1.0f64, |acc, r| if r.is_nan() { acc } else { acc.max(r) })
 }
 
 #[cfg(test)]

@@ -235,18 +235,15 @@ fn identify_stage(
         },
     );
     crate::par::phase("identify (whole call)", t_identify);
-    // `--bootstrap` acts on the prediction-error refinement only (`sign(u)` laws, friction
-    // laws on records in motion).
+    // `--bootstrap` acts on the refinements (the prediction error's, the free run's).
     let identification = identification.map(|mut id| {
-        let bootstrapped = id
-            .output_error
-            .as_ref()
-            .and_then(|r| r.prediction_error.as_ref())
-            .is_some_and(|p| p.bootstrap.is_some());
+        let bootstrapped = id.output_error.as_ref().is_some_and(|r| {
+            r.bootstrap.is_some() || r.prediction_error.as_ref().is_some_and(|p| p.bootstrap.is_some())
+        });
         let said = id.notes.iter().any(|n| n.contains("parametric bootstrap"));
         if opts.bootstrap.is_some_and(|n| n > 0) && !bootstrapped && !said {
             id.notes.push(
-                "`--bootstrap` not run: it applies to the prediction-error refinement (of `sign(u)` laws, and of friction laws on records in motion), which did not give this answer".into(),
+                "`--bootstrap` not run: it applies to the output-error refinements (the prediction error's and the free run's), which did not give this answer".into(),
             );
         }
         id
