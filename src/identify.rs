@@ -1322,11 +1322,10 @@ pub fn identify(
         }
         _ => first,
     };
-    // The free run's answer of a friction law: its own parametric bootstrap, when asked
-    // for or automatic (see `bootstrap`).
+    // The free run's answer: its own parametric bootstrap, when asked for (see `bootstrap`).
     bootstrap::free_run_bootstrap(setup, data, again.as_ref().unwrap_or(opts), &mut result);
-    // `--bootstrap` belongs to the prediction-error refinement and to the free run of a
-    // friction law: said rather than ignored without a word.
+    // `--bootstrap` belongs to the refinements (the prediction error's, the free run's):
+    // said rather than ignored without a word.
     let bootstrapped = result
         .output_error
         .as_ref()

@@ -1,22 +1,23 @@
-//! The parametric bootstrap of a free-run output-error answer of a friction law.
+//! The parametric bootstrap of a free-run output-error answer, when asked for
+//! (`--bootstrap N`, `IdentifyOptions::bootstrap`).
 //!
-//! Why: the free-run output-error cost of a law with a `sign` term is rough — a zero
-//! crossing that moves by a sub-step flips the friction force for that sub-step — and a
-//! descent over it can stop in a local minimum a few of its errors from the one the truth
-//! sits in, at a cost no higher. The stated error is a sandwich, a local linearisation
-//! about the minimum found, and sees neither the ripples nor the path the descent took.
-//! Measured (ACCURACY.md, thirty-eighth and thirty-ninth sessions; the 1-DOF setup on
-//! continuous data at 1 % noise, 30 seeds per row): 73–76 % coverage, the worst estimate
-//! 10.9 errors off; on seed 7822 the level-4 answer 10.9 errors off cost 0.5083, the right
-//! one 0.5095. The replicates are simulated from the answer and identified again by the
+//! Why: the free-run output-error cost of a law not linear in the state is rough — for a
+//! friction, a zero crossing that moves by a sub-step flips its force for that sub-step —
+//! and a descent over it can stop in a local minimum a few of its errors from the one the
+//! truth sits in, at a cost no higher. The stated error is a sandwich, a local
+//! linearisation about the minimum found, and sees neither the ripples nor the path the
+//! descent took. The replicates are simulated from the answer and identified again by the
 //! whole procedure (passes, free run, sub-step raise), so their spread includes the minima
 //! the procedure stops in, wherever it stops.
 //!
-//! When: the occasion of the prediction error's third one (`pem::bootstrap_occasion`): the
-//! final errors' sandwiches over secants of ±1 and ±8 errors differ by more than
-//! [`BOOTSTRAP_SECANT_DISAGREEMENT`] (`identify::scan::restate_final_errors`), i.e. the cost
-//! is not quadratic over the parameters' own errors and the sandwich does not measure them.
-//! Or when asked (`IdentifyOptions::bootstrap`).
+//! Why only when asked (the prediction error's runs by itself on its occasions,
+//! `pem::bootstrap_occasion`): measured on the 1-DOF setup and Coulomb (ACCURACY.md,
+//! thirty-ninth session), the prediction error's trigger — the final errors' sandwiches over
+//! secants of ±1 and ±8 errors differing by more than 1.2× — fired on 80 % and 68 % of the
+//! records, the misses among them no more than the answers that hold; run on every 1-DOF
+//! record it raised coverage at 1 % noise from 73 to 86 % and 76 to 82 % at ~20× the time,
+//! and the misses were mostly bias, which the sub-step rule of `raise_substeps` since
+//! removes.
 
 use super::pem::{BOOTSTRAP_SEED, student_t_975};
 use super::{Identification, IdentifyOptions, TestData, identify};
@@ -25,7 +26,7 @@ use crate::model::Model;
 use crate::setup::Setup;
 
 /// Bootstrap the free run's answer in `result` (identified from `data` with `opts`) when
-/// asked or automatic: `replicates` records of the model at the answer's values and model
+/// asked: `replicates` records of the model at the answer's values and model
 /// sub-steps, driven by the record's excitation from rest (or from the answer's start state,
 /// a record in motion), each with white noise at the level of the answer's residuals per
 /// channel, identified again with `opts` (the bootstrap off). Their spread, stated as a
@@ -33,7 +34,7 @@ use crate::setup::Setup;
 /// shift from the answer is reported, not subtracted (ten replicates estimate it to a third
 /// of the spread, and over a rough cost it is the path's, not a smooth bias). Nothing
 /// happens to an answer that is not the free run's (the prediction error has its own,
-/// `pem::bootstrap`) or not of a `sign` law.
+/// `pem::bootstrap`) or that it did not accept.
 pub(super) fn free_run_bootstrap(
     setup: &Setup,
     data: &TestData,

@@ -1328,6 +1328,16 @@ fn secant_disagreement(per_secant: &[Vec<f64>]) -> f64 {
 mod tests {
     use super::*;
 
+    /// The secants' disagreement is the largest ratio either way over the parameters, 1 for
+    /// a single secant, and a NaN ratio (a zero error) counts for nothing.
+    #[test]
+    fn secant_disagreement_is_the_largest_ratio_either_way() {
+        assert_eq!(secant_disagreement(&[vec![1.0, 2.0]]), 1.0);
+        let d = secant_disagreement(&[vec![1.0, 2.0, 0.0], vec![1.5, 1.0, 0.0]]);
+        assert_eq!(d, 2.0);
+        assert_eq!(secant_disagreement(&[vec![4.0], vec![1.0]]), 4.0);
+    }
+
     /// The refinement's own error (bound × noise allowance × misfit allowance) is replaced
     /// by the restated one both ways, keeping the misfit allowance; an error widened to a
     /// distance stays at least that distance (it had been scaled to 0.003 of it).
