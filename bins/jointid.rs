@@ -159,9 +159,9 @@ enum Command {
         /// analytic errors depend on the secant they are made from (an excitation weak
         /// against the friction), or the law has a friction on the rate (`sign(v)`) — where
         /// they do not hold — else none; 0 switches it off (README, Accuracy). An answer of
-        /// the free-run output error (Coulomb and other friction laws at rest) is
-        /// bootstrapped only when asked: each replicate is identified again by the whole
-        /// procedure, and its errors are at least their spread (not corrected).
+        /// the free-run output error (e.g. Coulomb or a gap at rest) is bootstrapped only
+        /// when asked: each replicate is identified again by the whole procedure, and the
+        /// errors are at least their spread (the answer is not corrected).
         #[arg(long, value_name = "N")]
         bootstrap: Option<usize>,
         /// The record starts in motion (cut from a running test): estimate its start state

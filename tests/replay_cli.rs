@@ -590,7 +590,8 @@ fn a_one_dof_damper_the_innovations_leave_free_is_refused_with_the_figure() {
 /// every finer model costs more *at it*, and the sub-steps were not raised — seed 7813 was
 /// 12.9 errors off (`const` 1.9748 ± 0.0020 N) at 10 % noise on 8-sub-step data and 206
 /// errors off at 1 % on 64-sub-step data. Each doubling is now refined from the last answer
-/// and taken while it lowers the cost (continuation): every parameter within 3 errors, the
+/// (continuation; since the thirty-ninth session every doubling, the finest within Δχ² = 1
+/// of the lowest taken): every parameter within 3 errors, the
 /// free run's own answer at 4 sub-steps or more (measured: 4 and 64), and the note says so.
 #[test]
 fn one_dof_on_finer_data_raises_the_model_sub_steps_by_continuation() {
@@ -638,9 +639,16 @@ fn one_dof_continuation_refines_every_doubling_and_takes_the_finest_equal_level(
         let rec = simulate_with_noise(dir.path(), &setup, seed, "additive:0.01", &extra);
         let v = replay_json(&[rec.to_str().unwrap()]);
         assert_within(&v, seed, 3.0);
+        // The free run's own answer at a finer model, not errors widened to a doubling's
+        // move.
         let oe = &v["output_error"];
+        assert!(
+            oe["prediction_error"].is_null() && oe["accepted"] == true,
+            "{seed}: {oe}"
+        );
         assert!(oe["substeps"].as_u64().unwrap() >= 8, "{seed}: {oe}");
         assert!(says(&v, "raised by continuation"), "{}", v["notes"]);
+        assert!(!says(&v, "did not converge"), "{}", v["notes"]);
     }
 }
 
@@ -648,6 +656,8 @@ fn one_dof_continuation_refines_every_doubling_and_takes_the_finest_equal_level(
 /// records simulated from the answer, each identified again by the whole procedure; the
 /// stated errors are at least their spread as a Student's t interval, the answer is not
 /// moved, and the report and a note say so (before, `--bootstrap` said it was not run).
+/// Measured (6 replicates): `const` floored from ± 0.00191 to ± 0.00237 N, `v` and `sign(v)`
+/// kept (their spread 0.35–0.68× their errors).
 #[test]
 fn bootstrap_asked_for_on_a_free_run_answer_floors_its_errors() {
     let dir = tempfile::tempdir().unwrap();
@@ -656,34 +666,40 @@ fn bootstrap_asked_for_on_a_free_run_answer_floors_its_errors() {
     let rec = simulate_with_noise(dir.path(), &setup, "7813", "additive:0.1", &extra);
     let rec = rec.to_str().unwrap();
     let plain = replay_json(&[rec, "--bootstrap", "0"]);
-    let v = replay_json(&[rec, "--bootstrap", "4"]);
+    let v = replay_json(&[rec, "--bootstrap", "6"]);
     assert_within(&v, "7813", 3.0);
     let boot = &v["output_error"]["bootstrap"];
-    let used = boot["used"].as_u64().unwrap();
-    assert!(used >= 2 && boot["failure"].is_null(), "{boot}");
-    // Student's t (used − 1 degrees of freedom) over the normal's 97.5 % quantile.
-    let t_ratio = [12.706, 4.303, 3.182, 2.776][used as usize - 1] / 1.959964;
+    let used = boot["used"].as_u64().unwrap() as usize;
+    assert!(used >= 5 && boot["failure"].is_null(), "{boot}");
+    // Student's t with used − 1 degrees of freedom over the normal's 97.5 % quantile (the
+    // tables; the code's expansion is within 0.3 % of them from 4 degrees on).
+    let t_ratio = [2.776, 2.571][used - 5] / 1.959964;
+    let mut floored = 0;
     for (j, p) in v["parameters"].as_array().unwrap().iter().enumerate() {
         let (value, se) = (
             p["value"].as_f64().unwrap(),
             p["std_error"].as_f64().unwrap(),
         );
-        let spread = boot["spread"][j].as_f64().unwrap();
+        let floor = boot["spread"][j].as_f64().unwrap() * t_ratio;
         let before = &plain["parameters"][j];
-        assert!(spread > 0.0, "{boot}");
-        assert!(se >= spread * t_ratio * (1.0 - 1e-9), "{p} {boot}");
+        let se_before = before["std_error"].as_f64().unwrap();
+        assert!(floor > 0.0, "{boot}");
         assert!(
-            se >= before["std_error"].as_f64().unwrap() * (1.0 - 1e-9),
-            "{p} {before}"
+            se >= floor * 0.995 && se >= se_before,
+            "{p} {before} {boot}"
         );
         assert_eq!(value, before["value"].as_f64().unwrap(), "{p} {before}");
+        if se > se_before && (se / floor - 1.0).abs() < 0.005 {
+            floored += 1;
+        }
     }
+    assert!(floored >= 1, "{} {boot}", v["parameters"]);
     assert!(
         says(&v, "parametric bootstrap of the free run"),
         "{}",
         v["notes"]
     );
-    assert!(!says(&v, "not run"), "{}", v["notes"]);
+    assert!(!says(&v, "`--bootstrap` not run"), "{}", v["notes"]);
 }
 
 /// The shipped friction setup (model at 1 sub-step) replaying continuous-like data (8

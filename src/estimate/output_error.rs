@@ -72,8 +72,8 @@ pub struct OutputErrorReport {
     /// with a `sign` term): 1 when the cost is linear in the parameters over their errors.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub secant_disagreement: Option<f64>,
-    /// The free run's parametric bootstrap, when asked for or automatic
-    /// (`identify::free_run_bootstrap`).
+    /// The free run's parametric bootstrap, when asked for (`--bootstrap N`;
+    /// `identify::bootstrap`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub bootstrap: Option<super::prediction_error::BootstrapReport>,
 }

@@ -19,7 +19,7 @@
 //! and the misses were mostly bias, which the sub-step rule of `raise_substeps` since
 //! removes.
 
-use super::pem::{BOOTSTRAP_SEED, student_t_975};
+use super::pem::{noisy_replicate, replicates_report, student_t_975};
 use super::{Identification, IdentifyOptions, TestData, identify};
 use crate::estimate::prediction_error::BootstrapReport;
 use crate::model::Model;
@@ -27,8 +27,7 @@ use crate::setup::Setup;
 
 /// Bootstrap the free run's answer in `result` (identified from `data` with `opts`) when
 /// asked: `replicates` records of the model at the answer's values and model
-/// sub-steps, driven by the record's excitation from rest (or from the answer's start state,
-/// a record in motion), each with white noise at the level of the answer's residuals per
+/// sub-steps, driven by the record's excitation from rest, each with white noise at the level of the answer's residuals per
 /// channel, identified again with `opts` (the bootstrap off). Their spread, stated as a
 /// Student's t interval of that many replicates, is a floor under each error; their mean
 /// shift from the answer is reported, not subtracted (ten replicates estimate it to a third
@@ -57,22 +56,23 @@ pub(super) fn free_run_bootstrap(
     };
     let values: Vec<f64> = last.parameters.iter().map(|p| p.value).collect();
     let t0 = std::time::Instant::now();
-    let boot = replicate(
-        setup,
-        data,
-        opts,
-        &values,
-        result.initial_state.as_deref(),
-        substeps,
-        replicates,
-    )
-    .unwrap_or_else(|e| BootstrapReport {
-        replicates,
-        used: 0,
-        noise: Vec::new(),
-        shift: Vec::new(),
-        spread: Vec::new(),
-        failure: Some(e),
+    if result.initial_state.is_some() {
+        // (The free run answers only records at rest: one in motion is refined by the
+        // prediction error, whose bootstrap starts from the refined start state.)
+        result.notes.push(
+            "parametric bootstrap of the free run not run: the record starts in motion".into(),
+        );
+        return;
+    }
+    let boot = replicate(setup, data, opts, &values, substeps, replicates).unwrap_or_else(|e| {
+        BootstrapReport {
+            replicates,
+            used: 0,
+            noise: Vec::new(),
+            shift: Vec::new(),
+            spread: Vec::new(),
+            failure: Some(e),
+        }
     });
     crate::par::phase("free-run bootstrap", t0);
     let why = format!("{replicates} replicates asked for");
@@ -83,7 +83,7 @@ pub(super) fn free_run_bootstrap(
         result.notes.push(format!(
             "parametric bootstrap of the free run ({why}) not run: {failure}; the stated errors are the sandwich's"
         ));
-    } else if boot.used * 2 < boot.replicates {
+    } else if boot.used < 2 || boot.used * 2 < boot.replicates {
         result.notes.push(format!(
             "parametric bootstrap of the free run ({why}): only {} of {} replicates were identified; the stated errors are the sandwich's",
             boot.used, boot.replicates
@@ -127,35 +127,18 @@ fn replicate(
     data: &TestData,
     opts: &IdentifyOptions,
     values: &[f64],
-    initial: Option<&[f64]>,
     substeps: usize,
     replicates: usize,
 ) -> Result<BootstrapReport, String> {
-    use rand::{RngExt, SeedableRng};
-    use rand_distr::StandardNormal;
     let model = Model::for_identification(setup).map_err(|e| e.to_string())?;
-    let free = match initial {
-        // The observer's run with a zero gain is the free run from the state it is given.
-        Some(x0) => crate::simulate::predictions_with_observer(
-            setup,
-            &model,
-            values,
-            &data.excitation,
-            &data.response,
-            setup.dt_s,
-            substeps,
-            &nalgebra::DMatrix::zeros(3 * model.n(), model.stations.len()),
-            Some(x0),
-        ),
-        None => crate::simulate::response_to_excitation(
-            setup,
-            &model,
-            values,
-            &data.excitation,
-            setup.dt_s,
-            substeps,
-        ),
-    }
+    let free = crate::simulate::response_to_excitation(
+        setup,
+        &model,
+        values,
+        &data.excitation,
+        setup.dt_s,
+        substeps,
+    )
     .map_err(|e| format!("the free run of the answer failed: {e}"))?;
     let n = free.len().min(data.response.len());
     let m = data.response.first().map_or(0, Vec::len);
@@ -177,16 +160,7 @@ fn replicate(
     };
     let seeds: Vec<u64> = (0..replicates as u64).collect();
     let answers: Vec<Option<Vec<f64>>> = crate::par::map(&seeds, |&b| {
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(BOOTSTRAP_SEED.wrapping_add(b));
-        let response: Vec<Vec<f64>> = free[..n]
-            .iter()
-            .map(|row| {
-                row.iter()
-                    .zip(&noise)
-                    .map(|(y, s)| y + s * rng.sample::<f64, _>(StandardNormal))
-                    .collect()
-            })
-            .collect();
+        let response = noisy_replicate(&free[..n], &noise, b);
         let record = TestData {
             samples: data.samples[..n].to_vec(),
             t_ns: data.t_ns[..n].to_vec(),
@@ -204,22 +178,5 @@ fn replicate(
         (got.len() == values.len() && got.iter().all(|x| x.is_finite())).then_some(got)
     });
     let got: Vec<Vec<f64>> = answers.into_iter().flatten().collect();
-    let k = got.len().max(1) as f64;
-    let mean: Vec<f64> = (0..values.len())
-        .map(|j| got.iter().map(|v| v[j]).sum::<f64>() / k)
-        .collect();
-    let spread: Vec<f64> = (0..values.len())
-        .map(|j| {
-            let ss: f64 = got.iter().map(|v| (v[j] - mean[j]).powi(2)).sum();
-            (ss / (k - 1.0).max(1.0)).sqrt()
-        })
-        .collect();
-    Ok(BootstrapReport {
-        replicates,
-        used: got.len(),
-        noise,
-        shift: mean.iter().zip(values).map(|(a, b)| a - b).collect(),
-        spread,
-        failure: None,
-    })
+    Ok(replicates_report(replicates, noise, &got, values))
 }

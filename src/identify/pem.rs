@@ -1110,7 +1110,7 @@ pub(crate) fn student_t_975(nu: usize) -> f64 {
 }
 
 /// Seed of the bootstrap's synthetic noise (fixed: the same record gives the same answer).
-pub(super) const BOOTSTRAP_SEED: u64 = 0x0062_6f6f_7473;
+const BOOTSTRAP_SEED: u64 = 0x0062_6f6f_7473;
 
 /// Parametric bootstrap of the prediction-error answer `r`: `replicates` records of the
 /// model at `r`'s values driven by the record's excitation (`data`'s, as the model
@@ -1153,9 +1153,7 @@ fn bootstrap(
     max_iter: usize,
     replicates: usize,
 ) -> Result<crate::estimate::prediction_error::BootstrapReport, crate::simulate::SimulateError> {
-    use crate::estimate::prediction_error::{BootstrapReport, Wanted, refine};
-    use rand::{RngExt, SeedableRng};
-    use rand_distr::StandardNormal;
+    use crate::estimate::prediction_error::{Wanted, refine};
     // A record in motion: the answer's free run from its start state (the observer's run
     // with a zero gain is the free run from the state it is given).
     let free = match r.initial_state.as_deref() {
@@ -1192,16 +1190,7 @@ fn bootstrap(
         .collect();
     let seeds: Vec<u64> = (0..replicates as u64).collect();
     let answers: Vec<Option<Vec<f64>>> = crate::par::map(&seeds, |&b| {
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(BOOTSTRAP_SEED.wrapping_add(b));
-        let response: Vec<Vec<f64>> = free[..n]
-            .iter()
-            .map(|row| {
-                row.iter()
-                    .zip(&noise)
-                    .map(|(y, s)| y + s * rng.sample::<f64, _>(StandardNormal))
-                    .collect()
-            })
-            .collect();
+        let response = noisy_replicate(&free[..n], &noise, b);
         refine(
             setup,
             model,
@@ -1224,8 +1213,36 @@ fn bootstrap(
         .filter(|v| v.iter().all(|x| x.is_finite()))
     });
     let got: Vec<Vec<f64>> = answers.into_iter().flatten().collect();
+    Ok(replicates_report(replicates, noise, &got, &r.values))
+}
+
+/// One replicate's response: `free` (the answer's predicted outputs) with white noise of
+/// std `noise[k]` on channel `k`, from the bootstrap's fixed seed plus the replicate's index
+/// (the same record gives the same replicates).
+pub(super) fn noisy_replicate(free: &[Vec<f64>], noise: &[f64], replicate: u64) -> Vec<Vec<f64>> {
+    use rand::{RngExt, SeedableRng};
+    use rand_distr::StandardNormal;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(BOOTSTRAP_SEED.wrapping_add(replicate));
+    free.iter()
+        .map(|row| {
+            row.iter()
+                .zip(noise)
+                .map(|(y, s)| y + s * rng.sample::<f64, _>(StandardNormal))
+                .collect()
+        })
+        .collect()
+}
+
+/// What the replicates' answers `got` say about `values` (the answer they were simulated
+/// from): per parameter their mean shift from it and their spread (sample std).
+pub(super) fn replicates_report(
+    replicates: usize,
+    noise: Vec<f64>,
+    got: &[Vec<f64>],
+    values: &[f64],
+) -> crate::estimate::prediction_error::BootstrapReport {
     let k = got.len().max(1) as f64;
-    let p = r.values.len();
+    let p = values.len();
     let mean: Vec<f64> = (0..p)
         .map(|j| got.iter().map(|v| v[j]).sum::<f64>() / k)
         .collect();
@@ -1235,14 +1252,14 @@ fn bootstrap(
             (ss / (k - 1.0).max(1.0)).sqrt()
         })
         .collect();
-    Ok(BootstrapReport {
+    crate::estimate::prediction_error::BootstrapReport {
         replicates,
         used: got.len(),
         noise,
-        shift: mean.iter().zip(&r.values).map(|(a, b)| a - b).collect(),
+        shift: mean.iter().zip(values).map(|(a, b)| a - b).collect(),
         spread,
         failure: None,
-    })
+    }
 }
 
 #[cfg(test)]

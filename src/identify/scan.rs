@@ -1295,15 +1295,18 @@ pub(super) fn restate_final_errors(
     if sign_law {
         let disagreement = secant_disagreement(&per_secant);
         if let Some(report) = result.output_error.as_mut() {
-            report.secant_disagreement = Some(disagreement);
+            report.secant_disagreement = disagreement;
         }
         result.notes.push(format!(
-            "final standard errors: {noise_words}; the sandwich of the fit at those levels, for the `sign` law the larger over secants of ±1 and ±8 standard errors (× {} the refinement's own; the two secants' differ up to {disagreement:.2}×)",
+            "final standard errors: {noise_words}; the sandwich of the fit at those levels, for the `sign` law the larger over secants of ±1 and ±8 standard errors (× {} the refinement's own{})",
             ratios
                 .iter()
                 .map(|x| format!("{x:.2}"))
                 .collect::<Vec<_>>()
-                .join(", ")
+                .join(", "),
+            disagreement
+                .map(|d| format!("; the two secants' differ up to {d:.2}×"))
+                .unwrap_or_default()
         ));
     } else {
         result.notes.push(format!(
@@ -1313,29 +1316,33 @@ pub(super) fn restate_final_errors(
 }
 
 /// The largest ratio (either way) between the errors of two secants' sandwiches, over the
-/// parameters: 1 when the cost is linear in the parameters over the wider secant.
-fn secant_disagreement(per_secant: &[Vec<f64>]) -> f64 {
+/// parameters: 1 when the cost is linear in the parameters over the wider secant. `None`
+/// unless both secants gave errors; a ratio that is not finite (an error of 0) is skipped.
+fn secant_disagreement(per_secant: &[Vec<f64>]) -> Option<f64> {
     let (Some(a), Some(b)) = (per_secant.first(), per_secant.get(1)) else {
-        return 1.0;
+        return None;
     };
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x / y).max(y / x))
-        .fold(1.0f64, |acc, r| if r.is_nan() { acc } else { acc.max(r) })
+    Some(
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x / y).max(y / x))
+            .filter(|r| r.is_finite())
+            .fold(1.0f64, f64::max),
+    )
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    /// The secants' disagreement is the largest ratio either way over the parameters, 1 for
-    /// a single secant, and a NaN ratio (a zero error) counts for nothing.
+    /// The secants' disagreement is the largest ratio either way over the parameters, none
+    /// for a single secant, and a ratio that is not finite (an error of 0) counts for nothing.
     #[test]
     fn secant_disagreement_is_the_largest_ratio_either_way() {
-        assert_eq!(secant_disagreement(&[vec![1.0, 2.0]]), 1.0);
-        let d = secant_disagreement(&[vec![1.0, 2.0, 0.0], vec![1.5, 1.0, 0.0]]);
-        assert_eq!(d, 2.0);
-        assert_eq!(secant_disagreement(&[vec![4.0], vec![1.0]]), 4.0);
+        assert_eq!(secant_disagreement(&[vec![1.0, 2.0]]), None);
+        let d = secant_disagreement(&[vec![1.0, 2.0, 0.0, 0.0], vec![1.5, 1.0, 0.0, 3.0]]);
+        assert_eq!(d, Some(2.0));
+        assert_eq!(secant_disagreement(&[vec![4.0], vec![1.0]]), Some(4.0));
     }
 
     /// The refinement's own error (bound × noise allowance × misfit allowance) is replaced
