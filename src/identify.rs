@@ -2975,8 +2975,12 @@ fn raise_substeps(
             ));
         }
         match taken {
-            // A finer level was tried and did not help: the sub-steps have converged.
-            None => settled = settled || !tried.is_empty(),
+            // A finer level was tried and did not help: the sub-steps have converged. (The
+            // descents count among the refinement's iterations.)
+            None => {
+                settled = settled || !tried.is_empty();
+                r.report.iterations += tried.iter().map(|t| t.1.report.iterations).sum::<usize>();
+            }
             Some(i) => {
                 settled = i + 1 < tried.len();
                 let others: usize = tried
