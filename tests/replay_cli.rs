@@ -596,31 +596,43 @@ fn a_one_dof_damper_the_innovations_leave_free_is_refused_with_the_figure() {
 #[test]
 fn one_dof_on_finer_data_raises_the_model_sub_steps_by_continuation() {
     let dir = tempfile::tempdir().unwrap();
-    let setup = repo("recordings/one-dof-friction.toml");
     for (substeps, noise) in [("8", "additive:0.1"), ("64", "additive:0.01")] {
-        let extra = [
-            "--steps",
-            "3000",
-            "--amplitude",
-            "50",
-            "--substeps",
-            substeps,
-        ];
-        let rec = simulate_with_noise(dir.path(), &setup, "7813", noise, &extra);
-        let v = replay_json(&[rec.to_str().unwrap()]);
-        let case = format!("7813 ({substeps} sub-steps, {noise})");
-        assert_within(&v, &case, 3.0);
-        // The free run's own answer (not the prediction error's, nor errors widened to a
-        // doubling's move), at a finer model than the setup's.
-        let oe = &v["output_error"];
-        assert!(
-            oe["prediction_error"].is_null() && oe["accepted"] == true,
-            "{case}: {oe}"
-        );
-        assert!(oe["substeps"].as_u64().unwrap() >= 4, "{case}: {oe}");
-        assert!(says(&v, "raised by continuation"), "{}", v["notes"]);
-        assert!(!says(&v, "did not converge"), "{}", v["notes"]);
+        one_dof_raised_by_continuation(dir.path(), "7813", substeps, noise, 4);
     }
+}
+
+/// Simulate the 1-DOF setup at rest (3,000 samples, 50 N RMS, `data_substeps`, `noise`),
+/// replay it with the defaults and assert the answer of the free run raised by continuation:
+/// every parameter within 3 errors, the free run's own answer (not the prediction error's,
+/// nor errors widened to a doubling's move) at `least` model sub-steps or more, and the note.
+fn one_dof_raised_by_continuation(
+    dir: &Path,
+    seed: &str,
+    data_substeps: &str,
+    noise: &str,
+    least: u64,
+) {
+    let setup = repo("recordings/one-dof-friction.toml");
+    let extra = [
+        "--steps",
+        "3000",
+        "--amplitude",
+        "50",
+        "--substeps",
+        data_substeps,
+    ];
+    let rec = simulate_with_noise(dir, &setup, seed, noise, &extra);
+    let v = replay_json(&[rec.to_str().unwrap()]);
+    let case = format!("{seed} ({data_substeps} sub-steps, {noise})");
+    assert_within(&v, &case, 3.0);
+    let oe = &v["output_error"];
+    assert!(
+        oe["prediction_error"].is_null() && oe["accepted"] == true,
+        "{case}: {oe}"
+    );
+    assert!(oe["substeps"].as_u64().unwrap() >= least, "{case}: {oe}");
+    assert!(says(&v, "raised by continuation"), "{case}: {}", v["notes"]);
+    assert!(!says(&v, "did not converge"), "{case}: {}", v["notes"]);
 }
 
 /// The continuation's levels on 64-sub-step 1-DOF data at 1 % noise, where the refined cost
@@ -633,22 +645,8 @@ fn one_dof_on_finer_data_raises_the_model_sub_steps_by_continuation() {
 #[test]
 fn one_dof_continuation_refines_every_doubling_and_takes_the_finest_equal_level() {
     let dir = tempfile::tempdir().unwrap();
-    let setup = repo("recordings/one-dof-friction.toml");
     for seed in ["7811", "7816"] {
-        let extra = ["--steps", "3000", "--amplitude", "50", "--substeps", "64"];
-        let rec = simulate_with_noise(dir.path(), &setup, seed, "additive:0.01", &extra);
-        let v = replay_json(&[rec.to_str().unwrap()]);
-        assert_within(&v, seed, 3.0);
-        // The free run's own answer at a finer model, not errors widened to a doubling's
-        // move.
-        let oe = &v["output_error"];
-        assert!(
-            oe["prediction_error"].is_null() && oe["accepted"] == true,
-            "{seed}: {oe}"
-        );
-        assert!(oe["substeps"].as_u64().unwrap() >= 8, "{seed}: {oe}");
-        assert!(says(&v, "raised by continuation"), "{}", v["notes"]);
-        assert!(!says(&v, "did not converge"), "{}", v["notes"]);
+        one_dof_raised_by_continuation(dir.path(), seed, "64", "additive:0.01", 8);
     }
 }
 

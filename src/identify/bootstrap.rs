@@ -26,9 +26,9 @@ use crate::model::Model;
 use crate::setup::Setup;
 
 /// Bootstrap the free run's answer in `result` (identified from `data` with `opts`) when
-/// asked: `replicates` records of the model at the answer's values and model
-/// sub-steps, driven by the record's excitation from rest, each with white noise at the level of the answer's residuals per
-/// channel, identified again with `opts` (the bootstrap off). Their spread, stated as a
+/// asked: `replicates` records of the model at the answer's values and model sub-steps,
+/// driven by the record's excitation from rest, each with white noise at the level of the
+/// answer's residuals per channel, identified again with `opts` (the bootstrap off). Their spread, stated as a
 /// Student's t interval of that many replicates, is a floor under each error; their mean
 /// shift from the answer is reported, not subtracted (ten replicates estimate it to a third
 /// of the spread, and over a rough cost it is the path's, not a smooth bias). Nothing
@@ -55,7 +55,6 @@ pub(super) fn free_run_bootstrap(
         return;
     };
     let values: Vec<f64> = last.parameters.iter().map(|p| p.value).collect();
-    let t0 = std::time::Instant::now();
     if result.initial_state.is_some() {
         // (The free run answers only records at rest: one in motion is refined by the
         // prediction error, whose bootstrap starts from the refined start state.)
@@ -64,6 +63,7 @@ pub(super) fn free_run_bootstrap(
         );
         return;
     }
+    let t0 = std::time::Instant::now();
     let boot = replicate(setup, data, opts, &values, substeps, replicates).unwrap_or_else(|e| {
         BootstrapReport {
             replicates,
