@@ -2241,7 +2241,7 @@ fn finish_with_output_error(
                     }
                 }
                 result.notes.push(format!(
-                    "`{friction_term}` friction: refined by prediction error (the output-error cost of this chaotic law is rough and its descent stops in local minima{}): observer process-noise force {:.4e} N per sample at the connections (tuned by the innovation likelihood of the start values), closed-loop spectral radius {:.6}, normalised innovation cost {:.4} → {:.4}; standard errors by the Newey–West sandwich, the larger of its values over secants of ±1 and ±8 errors (lag {} samples; stated/naive {})",
+                    "`{friction_term}` friction: refined by prediction error (the output-error cost of this chaotic law is rough and its descent stops in local minima{}): observer process-noise force {:.4e} N per sample at the connections (tuned by the innovation likelihood of the start values), closed-loop spectral radius {:.6}, normalised innovation cost {:.4} → {:.4}; standard errors by the sandwich, the larger of its values over secants of ±1 and ±8 errors, {} (stated/naive {})",
                     if has_sign_u_basis(setup) {
                         ""
                     } else {
@@ -2251,7 +2251,11 @@ fn finish_with_output_error(
                     rep.spectral_radius,
                     rep.cost_start,
                     rep.cost_end,
-                    rep.hac_lag,
+                    if rep.noise_driven_errors {
+                        "its score covariance the measurement noise's through the observer (the levels the free run's residuals show, at most the channels' estimate)".to_string()
+                    } else {
+                        format!("its score covariance by a Newey–West lag window of {} samples", rep.hac_lag)
+                    },
                     rep.sandwich_ratio
                         .iter()
                         .map(|x| format!("{x:.2}"))

@@ -18,6 +18,10 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 thread_local! {
     /// Whether this thread is running an item of a parallel [`map_with`].
     static IN_PARALLEL_MAP: Cell<bool> = const { Cell::new(false) };
+    /// The threads a [`map`] called on this thread may use: 0 outside any parallel map
+    /// ([`threads`]); inside one, its share of the enclosing map's threads (see
+    /// [`InParallelMap`]).
+    static THREAD_SHARE: Cell<usize> = const { Cell::new(0) };
 }
 
 /// Threads for a parallel map: `JOINTID_THREADS` (≥ 1) or the available parallelism.
@@ -29,23 +33,40 @@ pub fn threads() -> usize {
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
 }
 
-/// `items.iter().map(f).collect()`, with the items shared among [`threads`] scoped threads
-/// (each takes the next unclaimed item). The order of the results is that of the items.
+/// `items.iter().map(f).collect()`, with the items shared among scoped threads (each takes
+/// the next unclaimed item). The order of the results is that of the items.
+///
+/// Threads: [`threads`] at the top level; inside an item of a parallel map, that item's
+/// share of the enclosing map's threads (at least 1: one item after the other). Why: the
+/// bootstrap's replicates are a parallel map of whole identifications, each of which maps
+/// its own runs; with every level taking all the cores, `N` cores ran up to `N²` threads
+/// (a review finding of the thirty-ninth session). The results do not depend on the threads.
 pub fn map<T: Sync, R: Send>(items: &[T], f: impl Fn(&T) -> R + Sync) -> Vec<R> {
-    map_with(threads(), items, f)
+    map_with(available(), items, f)
 }
 
-/// Sets [`IN_PARALLEL_MAP`] for its life and puts the former value back when dropped, also
-/// when an item panics (`jointid live` catches a window's panic and keeps its worker thread,
-/// whose later maps must not take themselves for nested).
+/// The threads a map called here may use (see [`map`]).
+fn available() -> usize {
+    match THREAD_SHARE.with(Cell::get) {
+        0 => threads(),
+        share => share,
+    }
+}
+
+/// Sets [`IN_PARALLEL_MAP`] and [`THREAD_SHARE`] for its life and puts the former values
+/// back when dropped, also when an item panics (`jointid live` catches a window's panic and
+/// keeps its worker thread, whose later maps must not take themselves for nested).
 struct InParallelMap {
     was: bool,
+    share_was: usize,
 }
 
 impl InParallelMap {
-    fn enter() -> Self {
+    /// Entered by each of `workers` threads of a map that had `threads` to share.
+    fn enter(threads: usize, workers: usize) -> Self {
         Self {
             was: IN_PARALLEL_MAP.with(|c| c.replace(true)),
+            share_was: THREAD_SHARE.with(|c| c.replace((threads / workers.max(1)).max(1))),
         }
     }
 }
@@ -53,6 +74,7 @@ impl InParallelMap {
 impl Drop for InParallelMap {
     fn drop(&mut self) {
         IN_PARALLEL_MAP.with(|c| c.set(self.was));
+        THREAD_SHARE.with(|c| c.set(self.share_was));
     }
 }
 
@@ -80,7 +102,7 @@ pub fn map_with<T: Sync, R: Send>(
     }
     let next = AtomicUsize::new(0);
     let work = || {
-        let _inside = InParallelMap::enter();
+        let _inside = InParallelMap::enter(threads, workers);
         let mut done = Vec::new();
         loop {
             let i = next.fetch_add(1, Ordering::Relaxed);
@@ -147,6 +169,36 @@ mod tests {
             !nested(),
             "the calling thread must not stay marked as inside a map"
         );
+    }
+
+    /// A map inside an item of a parallel map gets that item's share of the threads: two
+    /// items of a four-thread map run their inner maps on two threads each, four items on
+    /// one (one item after the other, on the item's own thread); the share is put back after
+    /// the map. The results are those of the sequential map.
+    #[test]
+    fn a_nested_map_shares_the_enclosing_maps_threads() {
+        let threads_seen = |outer_items: usize| {
+            let items: Vec<usize> = (0..outer_items).collect();
+            map_with(4, &items, |_| {
+                let inner: Vec<std::thread::ThreadId> =
+                    map(&[0u8; 8], |_| std::thread::current().id());
+                let mut distinct = inner.clone();
+                distinct.sort_by_key(|id| format!("{id:?}"));
+                distinct.dedup();
+                (available(), distinct.len())
+            })
+        };
+        for (available_inside, distinct) in threads_seen(2) {
+            assert_eq!(available_inside, 2);
+            assert!(distinct <= 2, "{distinct} threads for a share of 2");
+        }
+        for (available_inside, distinct) in threads_seen(4) {
+            assert_eq!(available_inside, 1);
+            assert_eq!(distinct, 1);
+        }
+        assert_eq!(THREAD_SHARE.with(Cell::get), 0);
+        let nested: Vec<Vec<u32>> = map_with(3, &[1u32, 2, 3], |x| map(&[10u32, 20], |y| x * y));
+        assert_eq!(nested, vec![vec![10, 20], vec![20, 40], vec![30, 60]]);
     }
 
     /// The parallel map returns what the sequential map returns, in the items' order.

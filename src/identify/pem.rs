@@ -1290,6 +1290,7 @@ mod tests {
                 cost_end: 0.97,
                 whole_record_steps: None,
                 hac_lag: 6,
+                noise_driven_errors: true,
                 sandwich_ratio: vec![1.0, 1.0],
                 secant_disagreement: Some(1.0),
                 start_at_rest_tests: Vec::new(),
