@@ -632,7 +632,10 @@ fn the_observer_noise_shift_is_removed_on_a_long_record_at_full_noise() {
 /// samples). The velocity channels' difference estimate of the noise is 8–53× the true
 /// noise there; a correction from it moved `v` by 0.41 of its errors (the answers at this
 /// noise are unbiased over 20 seeds), from the tighter level the real innovations allow by
-/// 0.06. Every shift below 0.2 errors, every parameter within 2 errors of the truth.
+/// 0.06 — errors as stated until the fortieth session, when the damper's became 4.5×
+/// smaller (the score covariance from the noise through the observer, ACCURACY.md): the
+/// same shifts are 1.8 and 0.28 of today's errors. Every shift below 0.5 errors, every
+/// parameter within 2 errors of the truth.
 #[test]
 fn the_noise_shift_is_small_at_low_noise() {
     let s = shipped_friction_setup();
@@ -644,7 +647,7 @@ fn the_noise_shift_is_small_at_low_noise() {
         .expect("the noise shift is computed");
     for (p, b) in id.final_parameters().unwrap().iter().zip(&shift) {
         assert!(
-            b.abs() < 0.2 * p.std_error,
+            b.abs() < 0.5 * p.std_error,
             "{}: shift {b:e} against a standard error of {:e}",
             p.basis,
             p.std_error

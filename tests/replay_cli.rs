@@ -950,11 +950,12 @@ fn a_linear_law_on_the_kalman_pipeline_raises_its_sub_steps() {
 }
 
 /// Seeds 22 and 49 of the shipped spring setup (friction truth 0) on 64-sub-step data, 1 %
-/// noise: the residual-force estimate finds a friction (100 ± 42 N, 27 ± 9 N), the
-/// prediction error ends with it on its bound 0, and its likelihood-ratio statistic against
-/// the start's level is small (0.77, 0.25): the result stands with intervals that reach
-/// that level. Refused (as before), the free-run output error put the spring +1.1 %, 26 and
-/// 21 standard errors off.
+/// noise: the residual-force estimate finds a friction (97 ± 41 N, 17 ± 4 N; 100 and 27 N
+/// in earlier sessions), the prediction error ends with it on its bound 0, and its
+/// likelihood-ratio statistic against the start's level is small (0.83, 0.13): the result
+/// stands with intervals that reach that level, whatever the sandwich says (seed 49's is
+/// ± 17 N since the fortieth session's errors, ± 39 N before). Refused (as before), the
+/// free-run output error put the spring +1.1 %, 26 and 21 standard errors off.
 #[test]
 fn a_friction_the_innovations_cannot_tell_from_zero_stands_with_wide_intervals() {
     let dir = tempfile::tempdir().unwrap();
@@ -976,11 +977,18 @@ fn a_friction_the_innovations_cannot_tell_from_zero_stands_with_wide_intervals()
                 .any(|n| n.contains("likelihood-ratio statistic")),
             "seed {seed}: {notes:?}"
         );
+        // The start's level as the note states it: "(the start gave L ± E)".
+        let start_level: f64 = notes
+            .iter()
+            .find_map(|n| n.split("the start gave ").nth(1))
+            .and_then(|rest| rest.split(' ').next())
+            .and_then(|x| x.parse().ok())
+            .unwrap_or_else(|| panic!("seed {seed}: no start level in {notes:?}"));
+        assert!(start_level > 10.0, "seed {seed}: start level {start_level}");
         let friction = &v["parameters"][0];
-        let start_level = if seed == "22" { 100.0 } else { 26.6 };
         assert!(
-            friction["ci95"][1].as_f64().unwrap() >= 0.95 * start_level,
-            "seed {seed}: {friction}"
+            friction["ci95"][1].as_f64().unwrap() >= 0.999 * start_level,
+            "seed {seed}: {friction} against the start's {start_level}"
         );
     }
 }
@@ -1351,19 +1359,19 @@ fn a_sine_test_with_friction_is_bootstrapped_to_its_measured_errors() {
 }
 
 /// A random test whose excitation is weak against the friction (3,000 N RMS on the shipped
-/// friction setup instead of 20,000; continuous 64-sub-step data, 1 % noise): the sandwich
-/// errors depend on their secant (the innovations are not linear in the parameters over
-/// their errors) and are too small — `sign(u)` ended 3.3–3.5 of them off on this seed — so
-/// the parametric bootstrap runs by itself and the answer holds the truth within 2 of its
-/// errors; `--bootstrap 0` gives the sandwich's answer back with a note that says what
-/// such errors covered (ACCURACY.md, twentieth session). Seed 816 since 2026-11-29: on
-/// seed 812 (used until then, 7.3 errors off without the bootstrap) the passes' re-tune
-/// made from the first tuning (`identify::tune_kalman`) gives a start from which the
-/// sandwich's answer is 1.6 errors off, and the seed no longer shows the weakness. The
-/// last digits differ between debug and release builds and a chaotic law amplifies them:
-/// seed 820 (release: 3.6 off without, 0.43 at worst with) had `u` 2.1 errors off in the
-/// debug build CI runs; 816 holds in both (debug: 3.5 off without, 0.9 at worst with;
-/// release: 3.3 and 1.7).
+/// friction setup instead of 20,000; 8-sub-step data, 1 % noise): the joint sticks for a
+/// third of the record, the innovations are far from linear in the parameters over their
+/// errors (the two secants' sandwiches differ 14×) and the sandwich errors are too small —
+/// `sign(u)` ends about 100 of them off on seed 804 — so the parametric bootstrap runs by
+/// itself and the answer holds the truth within 2 of its errors; `--bootstrap 0` gives the
+/// sandwich's answer back with a note that says what such errors covered (ACCURACY.md,
+/// twentieth session). Seeds and data since the fortieth session: on seed 816 of 64-sub-step
+/// data (used until then; 3.3–3.5 errors off without the bootstrap) the sandwich's score
+/// covariance computed from the noise through the observer puts the answer 1.2 errors off,
+/// and the seed no longer shows the weakness; at 8 sub-steps, seeds 801–820, the sandwich
+/// alone covers 40 % (worst 101 errors), the bootstrap 88 % (as before the change). A
+/// chaotic law amplifies the last digits, which differ between debug and release builds:
+/// the margins here are wide in both.
 #[test]
 fn a_weak_excitation_against_the_friction_is_bootstrapped() {
     let dir = tempfile::tempdir().unwrap();
@@ -1371,8 +1379,8 @@ fn a_weak_excitation_against_the_friction_is_bootstrapped() {
     let rec = simulate_with(
         dir.path(),
         &setup,
-        "816",
-        &["--amplitude", "3000", "--substeps", "64"],
+        "804",
+        &["--amplitude", "3000", "--substeps", "8"],
     );
     let rec = rec.to_str().unwrap();
     let boot = replay_json(&[rec]);
@@ -1389,7 +1397,7 @@ fn a_weak_excitation_against_the_friction_is_bootstrapped() {
         "{}",
         pe["bootstrap"]
     );
-    assert_within(&boot, "816, bootstrapped", 2.0);
+    assert_within(&boot, "804, bootstrapped", 2.0);
     // Without it the friction is confidently wrong: the reason the bootstrap runs.
     let off = |v: &serde_json::Value| {
         let p = &v["parameters"][0];

@@ -748,6 +748,15 @@ pub(super) fn refine_by_prediction_error<'a>(
         data
     };
     let (exc, resp) = (&data.excitation, &data.response);
+    // Under an excitation that repeats itself or is smooth between samples the errors stay
+    // those of the residuals' lag window, which the automatic bootstrap was measured with
+    // (see `Wanted::ValuesAndLagWindowErrors`).
+    let periodic_excitation = excitation_periodicity(&data.excitation);
+    let wanted = if periodic_excitation.is_some() || smooth_gain.is_some() {
+        Wanted::ValuesAndLagWindowErrors
+    } else {
+        Wanted::ValuesAndErrors
+    };
     let t0 = std::time::Instant::now();
     let mut r = refine(
         setup,
@@ -761,7 +770,7 @@ pub(super) fn refine_by_prediction_error<'a>(
         force_std.max(floor),
         opts.output_error_iterations,
         opts.initial_state.as_deref(),
-        Wanted::ValuesAndErrors,
+        wanted,
     )?;
     crate::par::phase("pem refine", t0);
     // A start in motion that the first sample did not show, tested at the refined values
@@ -803,7 +812,7 @@ pub(super) fn refine_by_prediction_error<'a>(
         r.report.start_at_rest_tests = tests;
     }
     r.report.smooth_excitation_gain = smooth_gain;
-    r.report.periodic_excitation = excitation_periodicity(&data.excitation);
+    r.report.periodic_excitation = periodic_excitation;
     let automatic = bootstrap_occasion(&r.report, has_rate_friction(setup)).is_some();
     let replicates = opts.bootstrap.unwrap_or(if automatic {
         AUTO_BOOTSTRAP_REPLICATES
