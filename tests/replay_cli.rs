@@ -1358,6 +1358,51 @@ fn a_sine_test_with_friction_is_bootstrapped_to_its_measured_errors() {
     assert!(!says(&boot, "switched off"));
 }
 
+/// The prediction error's stated errors against the spread of its own answers: spring setup,
+/// 64-sub-step data, 1 % noise, seed 7701. A parametric bootstrap of 20 records simulated
+/// from the answer (each refined again) spreads `sign(u)`, `u`, `const(100)`, `v` by 17.5,
+/// 121, 0.163, 0.0034; the errors stated without it must match that spread per term (within
+/// 0.7–1.5×). Until the fortieth session the sandwich's score covariance came from the
+/// residuals' lag window and stated 31.7, 216, 0.117, 0.0124 — the damper 3.7× the spread;
+/// now it is computed from the noise through the observer (18.6, 121, 0.148, 0.0038) and
+/// the note says so.
+#[test]
+fn the_stated_errors_match_the_spread_of_the_bootstrap() {
+    let dir = tempfile::tempdir().unwrap();
+    let setup = repo("recordings/two-beam-spring.toml");
+    let rec = simulate_with(
+        dir.path(),
+        &setup,
+        "7701",
+        &["--steps", "2000", "--substeps", "64"],
+    );
+    let rec = rec.to_str().unwrap();
+    let plain = replay_json(&[rec]);
+    assert!(
+        plain["output_error"]["prediction_error"]["bootstrap"].is_null(),
+        "no automatic bootstrap on this record: {}",
+        plain["output_error"]["prediction_error"]["bootstrap"]
+    );
+    assert!(says(
+        &plain,
+        "its score covariance the measurement noise's through the observer"
+    ));
+    let boot = replay_json(&[rec, "--bootstrap", "20"]);
+    let spread = boot["output_error"]["prediction_error"]["bootstrap"]["spread"]
+        .as_array()
+        .unwrap()
+        .clone();
+    for (p, s) in plain["parameters"].as_array().unwrap().iter().zip(&spread) {
+        let ratio = p["std_error"].as_f64().unwrap() / s.as_f64().unwrap();
+        assert!(
+            (0.7..1.5).contains(&ratio),
+            "{}: stated {} against a spread of {s} (ratio {ratio:.2})",
+            p["basis"],
+            p["std_error"]
+        );
+    }
+}
+
 /// A random test whose excitation is weak against the friction (3,000 N RMS on the shipped
 /// friction setup instead of 20,000; 8-sub-step data, 1 % noise): the joint sticks for a
 /// third of the record, the innovations are far from linear in the parameters over their

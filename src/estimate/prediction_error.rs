@@ -572,7 +572,9 @@ pub struct PredictionErrorReport {
     pub hac_lag: usize,
     /// Whether the sandwich's score covariance is the measurement noise's through the
     /// observer ([`noise_driven_errors`]: a record at rest) rather than the lag window's
-    /// estimate from the residuals (a record in motion, or where the free run failed).
+    /// estimate from the residuals (a record in motion, an excitation that repeats itself or
+    /// is smooth between samples — [`Wanted::ValuesAndLagWindowErrors`] — or where the free
+    /// run failed).
     pub noise_driven_errors: bool,
     /// Stated (sandwich, the larger over [`ERROR_SECANTS`]) standard error over the naive
     /// `(JᵀJ)^{-1/2}` one of the ±1-error secant, per parameter.
@@ -1699,7 +1701,7 @@ pub fn refine(
     let (mut se, naive, lag) = sandwich(&J, m).ok_or(SimulateError::Singular)?;
     // At rest, the errors from the measurement noise through the observer (see
     // [`noise_driven_errors`]); a record in motion (the start state concentrated out of the
-    // innovations) keeps the sandwich.
+    // innovations) and a repeating or smooth excitation (`Wanted`) keep the lag window.
     let noise_driven = if wanted == Wanted::ValuesAndErrors && pred.initial.is_none() {
         residual_noise_variance(setup, model, &p, excitation, response, sigma, substeps).and_then(
             |var| {
