@@ -78,10 +78,12 @@ impl Drop for InParallelMap {
     }
 }
 
-/// [`map`], but one item after the other when called from an item of a parallel map (the
-/// cores are taken already: threads within threads would only contend for them). For the
-/// inner level of work that is also run on its own (the maximum-likelihood Jacobian: inside
-/// the parallel descents of its start grid, alone in its homotopy's stages).
+/// [`map`], but one item after the other when called from an item of a parallel map, even
+/// where that item's share of the threads ([`map`]) is more than one: for the inner level
+/// of work that is also run on its own and whose outer level has as many items as cores or
+/// more (the maximum-likelihood Jacobian: inside the parallel descents of its start grid,
+/// alone in its homotopy's stages), where a share of one is the usual case and the
+/// sequential order is what was measured.
 pub fn map_unless_nested<T: Sync, R: Send>(items: &[T], f: impl Fn(&T) -> R + Sync) -> Vec<R> {
     if IN_PARALLEL_MAP.with(Cell::get) {
         items.iter().map(f).collect()
@@ -168,6 +170,11 @@ mod tests {
         assert!(
             !nested(),
             "the calling thread must not stay marked as inside a map"
+        );
+        assert_eq!(
+            THREAD_SHARE.with(Cell::get),
+            0,
+            "nor keep a thread share after the panic"
         );
     }
 

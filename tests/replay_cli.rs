@@ -1350,6 +1350,13 @@ fn a_sine_test_with_friction_is_bootstrapped_to_its_measured_errors() {
         &boot,
         "parametric bootstrap (automatic: the excitation repeats itself"
     ));
+    // Under a repeating excitation the sandwich keeps the residuals' lag window (the noise
+    // moves the switching the same way every cycle; `Wanted::ValuesAndLagWindowErrors`).
+    assert!(says(&boot, "by a Newey–West lag window of"));
+    assert_eq!(
+        boot["output_error"]["prediction_error"]["noise_driven_errors"].as_bool(),
+        Some(false)
+    );
     assert!(says(&boot, ": 10 of 10 records"));
     assert!(says(
         &plain,

@@ -22,7 +22,9 @@
 //! Standard errors: the observer gain is not the optimal one for the data (the true
 //! system has no process noise), so the normalised innovations are neither white nor of
 //! unit variance; the errors are the sandwich `A⁻¹ B A⁻¹` with `A = JᵀJ` and `B` the
-//! Newey–West (Bartlett) long-run covariance of the per-sample scores `J_iᵀ r_i`.
+//! covariance of the score `Σ J_iᵀ r_i` — computed from the measurement noise through the
+//! observer at rest ([`noise_driven_errors`]), the Newey–West (Bartlett) long-run
+//! covariance of the per-sample scores in motion or under a repeating or smooth excitation.
 
 #![allow(non_snake_case)]
 
@@ -640,7 +642,8 @@ pub struct StartAtRestTest {
 #[derive(Debug, Clone)]
 pub struct PemRefined {
     pub values: Vec<f64>,
-    /// Sandwich (Newey–West) standard errors, widened for a friction on its bound.
+    /// Sandwich standard errors (see [`noise_driven_errors`]), widened for a friction on its
+    /// bound.
     pub std_errors: Vec<f64>,
     /// Naive `(JᵀJ)^{-1/2}` of the normalised innovations (the error if the innovations had
     /// the variance the filter predicts: not a bound, reported as a diagnostic).
@@ -863,7 +866,7 @@ fn normal(j: &Jac) -> (DMatrix<f64>, DVector<f64>) {
 /// Per channel, the variance of the measurement noise the answer `p` leaves in the record:
 /// the mean square of the record less the model's free run from rest at `p`, at most
 /// `sigma²` (the channels' noise estimate) — the levels of the parametric bootstrap's
-/// records (`identify::pem::bootstrap`), so that the two agree. A misfit of the model
+/// records (`identify::pem::bootstrap`, there after the noise shift), about the same. A misfit of the model
 /// counts as noise: conservative. The free run through the sample maps (an observer of
 /// gain 0), whose round-off does not matter to a mean square. `None` when it fails.
 fn residual_noise_variance(
@@ -912,7 +915,7 @@ fn residual_noise_variance(
 /// `e_i = v_i − H x_i`) — and the Gauss–Newton score is `s = Σ_i ψ_iᵀ W e_i` (`ψ_i` the
 /// whitened Jacobian rows of sample `i`, `W` the whitening). So `s = Σ_j φ_jᵀ v_j` with
 /// `φ_j = g_j − (Φ K)ᵀ μ_j`, `g_j = Wᵀ ψ_j`, and `μ` the adjoint run backwards,
-/// `μ_{j−1} = Φ(I − KH)ᵀ μ_j + Hᵀ g_j` from `μ_{N−1} = 0`; `B = Σ_j φ_jᵀ V φ_j` — one
+/// `μ_{j−1} = (Φ(I − KH))ᵀ μ_j + Hᵀ g_j` from `μ_{N−1} = 0`; `B = Σ_j φ_jᵀ V φ_j` — one
 /// backward pass of the record, no lag window, the observer's whole memory included.
 ///
 /// Why (fortieth session): the Newey–West sandwich of the residuals' scores stated
@@ -922,7 +925,7 @@ fn residual_noise_variance(
 /// the window keeps the wrong part of it. Measured on the spring setup, 64-sub-step data,
 /// 1 % noise, seed 7701: the sandwich 31.7, 216, 0.117, 0.0124; a parametric bootstrap's
 /// spread (20 records simulated from the answer, each refined again) 17.5, 121, 0.163,
-/// 0.00335; this 18.5, 120, 0.147, 0.00376 (ACCURACY.md, fortieth session).
+/// 0.00335; this 18.6, 121, 0.148, 0.00377 (ACCURACY.md, fortieth session).
 fn noise_driven_errors(pred: &Predictor, j: &Jac, m: usize, noise_var: &[f64]) -> Option<Vec<f64>> {
     let p = j.cols.len();
     let score = noise_score_covariance(pred, j, m, noise_var)?;
@@ -950,11 +953,11 @@ fn noise_score_covariance(
 ) -> Option<DMatrix<f64>> {
     use crate::dense::{Op, gemv, gemv_slices};
     let p = j.cols.len();
-    let n = j.r.len() / m;
-    let nz = pred.psi_t.nrows();
-    if noise_var.len() != m || pred.channel_state.len() != m || p == 0 {
+    if m == 0 || noise_var.len() != m || pred.channel_state.len() != m || p == 0 {
         return None;
     }
+    let n = j.r.len() / m;
+    let nz = pred.psi_t.nrows();
     let w_t = pred.whiten.transpose();
     let mut mu: Vec<DVector<f64>> = vec![DVector::zeros(nz); p];
     let mut next = DVector::zeros(nz);
@@ -1714,45 +1717,43 @@ pub fn refine(
     } else {
         None
     };
-    // How far the two secants' sandwiches disagree (the automatic bootstrap's occasion,
-    // `identify::pem::BOOTSTRAP_SECANT_DISAGREEMENT`, measured on them); the errors are the
-    // larger of the two secants'.
+    // How far the two secants' lag-window sandwiches disagree (the automatic bootstrap's
+    // occasion, `identify::pem::BOOTSTRAP_SECANT_DISAGREEMENT`, measured on them).
     let noise_driven_errors = noise_driven.is_some();
-    let mut secant_disagreement = None;
-    if let Some((wide_se, _, _)) = wide_jacobian.as_ref().and_then(|w| sandwich(w, m)) {
-        secant_disagreement = Some(
-            se.iter()
-                .zip(&wide_se)
-                .map(|(a, b)| (a / b).max(b / a))
-                .fold(1.0f64, |acc, x| if x.is_nan() { acc } else { acc.max(x) }),
-        );
-        let wide_se = match &noise_driven {
-            Some((_, wide)) => wide.clone(),
-            None => Some(wide_se),
-        };
-        if let Some((narrow, _)) = &noise_driven {
-            se.clone_from(narrow);
+    let lag_window_wide = wide_jacobian
+        .as_ref()
+        .and_then(|w| sandwich(w, m))
+        .map(|w| w.0);
+    let secant_disagreement = lag_window_wide.as_ref().map(|wide| {
+        se.iter()
+            .zip(wide)
+            .map(|(a, b)| (a / b).max(b / a))
+            .fold(1.0f64, |acc, x| if x.is_nan() { acc } else { acc.max(x) })
+    });
+    // The stated errors: the larger of the two secants' sandwiches, both by the same score
+    // covariance (the one that failed leaves the other alone). The sandwich is the error
+    // (Ljung's covariance of a prediction-error estimate whose predictor is not the true
+    // conditional mean: the observer's process noise is a device, the data have none) — at
+    // rest its score covariance computed from the noise through the observer
+    // (`noise_driven_errors`), in motion or under a repeating or smooth excitation
+    // estimated by the lag window. The naive error assumes the innovations have the
+    // variance the filter predicts; they come out smaller (normalised cost 0.2 on the
+    // shipped recording), so it overstates the error; it was once a floor under the
+    // sandwich (ACCURACY.md, "The sandwich is the error"). On data of the model's own
+    // discretisation with friction, where the cost is rough, the wide secant of
+    // `ERROR_SECANTS` is needed (ACCURACY.md, "Secants wide against the error").
+    let wide_se = match noise_driven {
+        Some((narrow, wide)) => {
+            se = narrow;
+            wide
         }
-        if let Some(wide_se) = wide_se {
-            for (a, b) in se.iter_mut().zip(&wide_se) {
-                *a = a.max(*b);
-            }
+        None => lag_window_wide,
+    };
+    if let Some(wide_se) = wide_se {
+        for (a, b) in se.iter_mut().zip(&wide_se) {
+            *a = a.max(*b);
         }
-    } else if let Some((narrow, _)) = &noise_driven {
-        se.clone_from(narrow);
     }
-    // The sandwich is the error (Ljung's covariance of a prediction-error estimate whose
-    // predictor is not the true conditional mean: the observer's process noise is a device,
-    // the data have none) — at rest its score covariance computed from the noise through
-    // the observer (`noise_driven_errors`), in motion estimated by the lag window. The naive error assumes the innovations have the variance the
-    // filter predicts; they come out smaller (normalised cost 0.2 on the shipped
-    // recording), so it overstates the error. It used to be a floor under the sandwich;
-    // measured over 50 seeds per row, that floor made every continuous-data row 99–100 %
-    // with no estimate beyond 0.9 errors at 1 % noise (the errors 3–4× wider than the
-    // spread of the estimates); the sandwich alone gives 92–98 % there (worst 3.5). On
-    // data of the model's own discretisation with friction, where the cost is rough, it
-    // needs the wide secants of `ERROR_SECANTS` (92–98 %, worst 4.6). ACCURACY.md, "The
-    // sandwich is the error" and "Secants wide against the error".
     let mut std_errors: Vec<f64> = se.clone();
     // The measurement noise's shift through the observer, removed, its error added (see
     // [`noise_bias`]).
