@@ -1930,29 +1930,27 @@ fn noise_record(draws: &[f64], level: &[f64]) -> Vec<Vec<f64>> {
 /// came out 0.41 of its errors, with the tighter bound 0.06 (the true noise's shift there
 /// is of that order: it scales with the noise's variance).
 #[allow(clippy::too_many_arguments)]
+/// `quiet`, `observer`, `still` and `draws`: the noise record's model, observer, (zero)
+/// excitation and standard normal draws ([`noise_record_model`], [`noise_draws`]).
 fn noise_level(
     setup: &Setup,
     model: &Model,
-    basis: &[Basis],
-    p: &[f64],
-    pred: &Predictor,
-    samples: usize,
+    (quiet, observer): (&[f64], &Predictor),
+    still: &[Vec<f64>],
+    draws: &[f64],
     sigma: &[f64],
     substeps: usize,
     real_innovations: &[f64],
 ) -> Result<Vec<f64>, SimulateError> {
     let m = sigma.len();
-    let (quiet, observer) = noise_record_model(basis, p, pred);
-    let still = vec![vec![0.0; model.Lp.ncols()]; samples];
-    let draws = noise_draws(samples, m);
-    let record = |level: &[f64]| noise_record(&draws, level);
+    let record = |level: &[f64]| noise_record(draws, level);
     let level: Vec<f64> = {
         let (r_noise, _) = innovations(
             setup,
             model,
-            &quiet,
-            &observer,
-            &still,
+            quiet,
+            observer,
+            still,
             &record(sigma),
             substeps,
         )?;
@@ -2056,20 +2054,20 @@ fn noise_bias(
     if scored.is_empty() || samples == 0 {
         return Ok(None);
     }
+    let (quiet, observer) = noise_record_model(basis, p, pred);
+    let still = vec![vec![0.0; model.Lp.ncols()]; samples];
+    let draws = noise_draws(samples, m);
     let level = noise_level(
         setup,
         model,
-        basis,
-        p,
-        pred,
-        samples,
+        (&quiet, &observer),
+        &still,
+        &draws,
         sigma,
         substeps,
         real_innovations,
     )?;
-    let (quiet, observer) = noise_record_model(basis, p, pred);
-    let still = vec![vec![0.0; model.Lp.ncols()]; samples];
-    let y = noise_record(&noise_draws(samples, m), &level);
+    let y = noise_record(&draws, &level);
     // The record at `quiet` and displaced along each scored parameter (central secants of
     // `widths`), on parallel threads.
     let mut points = vec![quiet.clone()];
