@@ -287,7 +287,7 @@ unsafe fn product_fused(
         let len = (rows - i0).min(16);
         // SAFETY: rows i0..i0+len lie in A's and C's columns (asserted above).
         unsafe {
-            match (len.div_ceil(4), len % 4 != 0) {
+            match (len.div_ceil(4), !len.is_multiple_of(4)) {
                 (1, false) => fused_rows::<1, false>(rows, inner, cols, ap, bp, cp, i0, len),
                 (1, true) => fused_rows::<1, true>(rows, inner, cols, ap, bp, cp, i0, len),
                 (2, false) => fused_rows::<2, false>(rows, inner, cols, ap, bp, cp, i0, len),
@@ -313,7 +313,7 @@ unsafe fn product_fused(
 /// As [`product_fused`]; `len ≤ 16`, `NV = ⌈len / 4⌉`, `MASKED = (len % 4 ≠ 0)`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-#[allow(clippy::too_many_arguments)]
+#[allow(clippy::too_many_arguments, clippy::needless_range_loop)]
 unsafe fn fused_rows<const NV: usize, const MASKED: bool>(
     rows: usize,
     inner: usize,
@@ -540,44 +540,90 @@ unsafe fn gemv_block<const V: usize, const S: usize>(
     }
 }
 
-/// Solves with nalgebra's LU factors, bit for bit `lu.solve(b)`, without its per-element
-/// overhead.
+/// An LU factorisation with partial pivoting and its solves, bit for bit nalgebra's
+/// `a.lu()` and `lu.solve(b)`, without their per-element overhead.
 ///
 /// Why: the Riccati doubling of the Kalman filter and of the prediction error's observer
-/// solves `(I + G H) X = A` twice per step on `34 × 34` matrices (the paper model), some
-/// 250 times per identification; nalgebra's triangular solves make an `axpy` call (views,
-/// shape checks, a generic loop of two doubles per instruction) for every element of the
-/// diagonal and every column, one column at a time, and were a fifth of the shipped replay's
-/// CPU time. Here, where the CPU has AVX, four columns are solved together and four rows'
-/// sums stay in registers ([`substitute_avx`]): 21 → 6.5 µs for a `34 × 34` solve; elsewhere
-/// plain loops over slices.
+/// factors `I + G H` and solves `(I + G H) X = A` twice per step on `22 × 22` to `34 × 34`
+/// matrices, about a thousand times per identification; nalgebra's triangular solves make
+/// an `axpy` call (views, shape checks, a generic loop of two doubles per instruction) for
+/// every element of the diagonal and every column, one column at a time, and were a fifth
+/// of the shipped replay's CPU time. Here, where the CPU has AVX, four columns are solved
+/// together and four rows' sums stay in registers ([`substitute_avx`]): 21 → 6.5 µs for a
+/// `34 × 34` solve; elsewhere plain loops over slices. The factorisation is done here too
+/// ([`Self::factor`]): nalgebra's `LU::new` and the unpacking of its `L` and `U` were
+/// another 4 % of a replay's instructions (callgrind, forty-first session).
 ///
-/// The arithmetic is nalgebra's, operation for operation (`LU::solve_mut`: the row
-/// permutation, then forward substitution with the unit lower factor, then back
+/// The arithmetic is nalgebra's, operation for operation (`LU::new`: the first largest
+/// magnitude of the column as pivot, a zero pivot skipped, the multipliers times the
+/// pivot's reciprocal, each update `a_rk + (−a_ik)·l_ri`; `LU::solve_mut`: the row
+/// swaps in order, then forward substitution with the unit lower factor, then back
 /// substitution dividing by `U`'s diagonal; each update `b_r = b_r − c·L_ri` a rounded
 /// multiply then a rounded subtract, in the same order of `i`), so the answers do not
-/// change by a bit. Unit test: the bits against `lu.solve` for every size up to 40.
-pub struct LuSolver<'a> {
-    lu: &'a nalgebra::LU<f64, nalgebra::Dyn, nalgebra::Dyn>,
-    l: DMatrix<f64>,
-    u: DMatrix<f64>,
-    /// `Lᵀ`, `Uᵀ` (column-major, so `L`, `U` row by row: the AVX kernel's order of reads).
-    lt: DMatrix<f64>,
-    ut: DMatrix<f64>,
+/// change by a bit. Unit test: the bits against nalgebra for every size up to 40.
+pub struct LuSolver {
+    /// `L` (strictly below the diagonal, unit diagonal implied) and `U` packed, column-major.
+    packed: DMatrix<f64>,
+    /// Its transpose (`L` and `U` row by row: the AVX kernel's order of reads).
+    packed_t: DMatrix<f64>,
+    /// The row swaps `(i, pivot)` in the order they were made.
+    swaps: Vec<(usize, usize)>,
     singular: bool,
 }
 
-impl<'a> LuSolver<'a> {
-    pub fn new(lu: &'a nalgebra::LU<f64, nalgebra::Dyn, nalgebra::Dyn>) -> Self {
-        let (l, u) = (lu.l(), lu.u());
+impl LuSolver {
+    /// Factor the square matrix `a` (nalgebra's `a.lu()`, bit for bit).
+    ///
+    /// # Panics
+    /// When `a` is not square.
+    pub fn factor(mut a: DMatrix<f64>) -> Self {
+        let n = a.nrows();
+        assert!(a.is_square(), "LU: a square matrix");
+        let m = a.as_mut_slice();
+        let mut swaps = Vec::new();
+        for i in 0..n {
+            let column = &m[i * n..(i + 1) * n];
+            let mut pivot = i;
+            let mut largest = column[i].abs();
+            for (r, v) in column.iter().enumerate().skip(i + 1) {
+                // `>`: the first of equal magnitudes, and never a NaN (as `icamax`).
+                if v.abs() > largest {
+                    largest = v.abs();
+                    pivot = r;
+                }
+            }
+            let diag = column[pivot];
+            if diag == 0.0 {
+                // No non-zero entry on this column: nalgebra goes on to the next.
+                continue;
+            }
+            if pivot != i {
+                swaps.push((i, pivot));
+                for k in 0..n {
+                    m.swap(k * n + i, k * n + pivot);
+                }
+            }
+            let inv_diag = 1.0 / diag;
+            for v in &mut m[i * n + i + 1..(i + 1) * n] {
+                *v *= inv_diag;
+            }
+            let (left, right) = m.split_at_mut((i + 1) * n);
+            let coeffs = &left[i * n + i + 1..(i + 1) * n];
+            for col in right.chunks_exact_mut(n) {
+                let p = -col[i];
+                for (y, x) in col[i + 1..].iter_mut().zip(coeffs) {
+                    // nalgebra's `axpy`: `a·x·1 + 1·y` with `a = −pivot_row[k]` (IEEE
+                    // addition commutes, so `y + a·x` is the same bits).
+                    *y += p * *x;
+                }
+            }
+        }
         // nalgebra stops (and `solve` returns `None`) at an exactly zero pivot.
-        let singular = (0..u.nrows().min(u.ncols())).any(|i| u[(i, i)] == 0.0);
+        let singular = (0..n).any(|i| a[(i, i)] == 0.0);
         Self {
-            lu,
-            lt: transposed(&l),
-            ut: transposed(&u),
-            l,
-            u,
+            packed_t: transposed(&a),
+            packed: a,
+            swaps,
             singular,
         }
     }
@@ -585,13 +631,10 @@ impl<'a> LuSolver<'a> {
     /// `A⁻¹ B`; `None` when a pivot of `U` is exactly zero (as `lu.solve`).
     ///
     /// # Panics
-    /// When `A` is not square or `B` has not `A`'s rows, as nalgebra does.
+    /// When `B` has not `A`'s rows, as nalgebra does.
     pub fn solve(&self, b: &DMatrix<f64>) -> Option<DMatrix<f64>> {
-        let n = self.l.nrows();
-        assert!(
-            self.u.is_square() && b.nrows() == n,
-            "LU solve: dimensions mismatch"
-        );
+        let n = self.packed.nrows();
+        assert!(b.nrows() == n, "LU solve: dimensions mismatch");
         if self.singular {
             return None;
         }
@@ -599,14 +642,28 @@ impl<'a> LuSolver<'a> {
         if n == 0 {
             return Some(x);
         }
-        self.lu.p().permute_rows(&mut x);
+        for &(i, pivot) in &self.swaps {
+            x.swap_rows(i, pivot);
+        }
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx") {
             // SAFETY: the CPU has AVX (checked above); the kernel only indexes slices.
-            unsafe { substitute_avx(self.lt.as_slice(), self.ut.as_slice(), n, x.as_mut_slice()) };
+            unsafe {
+                substitute_avx(
+                    self.packed_t.as_slice(),
+                    self.packed_t.as_slice(),
+                    n,
+                    x.as_mut_slice(),
+                )
+            };
             return Some(x);
         }
-        substitute(self.l.as_slice(), self.u.as_slice(), n, x.as_mut_slice());
+        substitute(
+            self.packed.as_slice(),
+            self.packed.as_slice(),
+            n,
+            x.as_mut_slice(),
+        );
         Some(x)
     }
 }
@@ -960,7 +1017,8 @@ mod tests {
         assert!(all_finite(&[f64::MAX, -f64::MAX, f64::MIN_POSITIVE, 0.0]));
     }
 
-    /// [`LuSolver::solve`] (and its portable kernel) gives the bits of nalgebra's `lu.solve` for every size up to 40
+    /// [`LuSolver::factor`] gives the bits of nalgebra's `lu.l()`, `lu.u()`, and
+    /// [`LuSolver::solve`] (and its portable kernel) those of `lu.solve`, for every size up to 40
     /// (right-hand sides of 0–3 columns, 5 and of the matrix's size), and `None` on an exactly
     /// singular matrix as nalgebra.
     #[test]
@@ -977,7 +1035,16 @@ mod tests {
                 }
             });
             let lu = a.clone().lu();
-            let solver = LuSolver::new(&lu);
+            let solver = LuSolver::factor(a.clone());
+            // The factors themselves, bit for bit.
+            let (l, u) = (lu.l(), lu.u());
+            for i in 0..n {
+                for j in 0..n {
+                    let want = if i > j { l[(i, j)] } else { u[(i, j)] };
+                    let got = solver.packed[(i, j)];
+                    assert_eq!(got.to_bits(), want.to_bits(), "{n}: factor ({i}, {j})");
+                }
+            }
             for cols in [0, 1, 2, 3, 5, n] {
                 let b = DMatrix::from_fn(n, cols, |_, _| match rng.random_range(0..8) {
                     0 => 0.0,
@@ -990,8 +1057,8 @@ mod tests {
                 let mut plain = b.clone();
                 lu.p().permute_rows(&mut plain);
                 substitute(
-                    solver.l.as_slice(),
-                    solver.u.as_slice(),
+                    solver.packed.as_slice(),
+                    solver.packed.as_slice(),
                     n,
                     plain.as_mut_slice(),
                 );
@@ -1003,11 +1070,11 @@ mod tests {
         }
         let singular =
             DMatrix::from_row_slice(3, 3, &[1.0, 2.0, 3.0, 2.0, 4.0, 6.0, 1.0, 0.0, 1.0]);
-        let lu = singular.lu();
+        let lu = singular.clone().lu();
         let b = DMatrix::from_element(3, 2, 1.0);
         assert_eq!(
             lu.solve(&b).is_none(),
-            LuSolver::new(&lu).solve(&b).is_none()
+            LuSolver::factor(singular).solve(&b).is_none()
         );
     }
 

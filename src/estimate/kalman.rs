@@ -1050,8 +1050,7 @@ fn filter_dare_doubling(
         steps += 1;
         use crate::dense::product;
         let w = &id + product(&Gk, &Hk);
-        let lu = w.lu();
-        let solver = crate::dense::LuSolver::new(&lu);
+        let solver = crate::dense::LuSolver::factor(w);
         let Some(wa) = solver.solve(&Ak) else { break };
         let Some(wg) = solver.solve(&Gk) else { break };
         let a_next = product(&Ak, &wa);
