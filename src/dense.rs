@@ -672,11 +672,13 @@ impl LuSolver {
 pub fn transposed(a: &DMatrix<f64>) -> DMatrix<f64> {
     let (rows, cols) = a.shape();
     let src = a.as_slice();
-    let mut t = vec![0.0; src.len()];
-    for j in 0..cols {
-        for i in 0..rows {
-            t[i * cols + j] = src[j * rows + i];
-        }
+    if src.is_empty() {
+        return DMatrix::zeros(cols, rows);
+    }
+    // Column `i` of the transpose is row `i` of `A`: every `rows`-th element from `i`.
+    let mut t = Vec::with_capacity(src.len());
+    for i in 0..rows {
+        t.extend(src[i..].iter().step_by(rows));
     }
     DMatrix::from_vec(cols, rows, t)
 }
@@ -687,11 +689,18 @@ pub fn symmetrized(a: &DMatrix<f64>) -> DMatrix<f64> {
     let n = a.nrows();
     assert!(a.is_square(), "symmetrized: a square matrix");
     let src = a.as_slice();
-    let mut out = vec![0.0; src.len()];
-    for j in 0..n {
-        for i in 0..n {
-            out[j * n + i] = (src[j * n + i] + src[i * n + j]) * 0.5;
-        }
+    if n == 0 {
+        return DMatrix::zeros(0, 0);
+    }
+    let mut out = Vec::with_capacity(src.len());
+    for (j, column) in src.chunks_exact(n).enumerate() {
+        let row = src[j..].iter().step_by(n);
+        out.extend(
+            column
+                .iter()
+                .zip(row)
+                .map(|(a_ij, a_ji)| (a_ij + a_ji) * 0.5),
+        );
     }
     DMatrix::from_vec(n, n, out)
 }

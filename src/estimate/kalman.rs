@@ -1046,16 +1046,16 @@ fn filter_dare_doubling(
     let id = DMatrix::<f64>::identity(nz, nz);
     let (mut last_change, mut peak_change) = (f64::INFINITY, 0.0f64);
     let mut steps = 0;
-    for _ in 0..max_steps {
+    // `H` is updated and tested first: the step that ends the iteration (converged, or
+    // the last allowed) makes no `A`, `G` it would not use.
+    for step in 0..max_steps {
         steps += 1;
         use crate::dense::product;
         let w = &id + product(&Gk, &Hk);
         let solver = crate::dense::LuSolver::factor(w);
+        // `solve` fails only on a singular factorisation, for any right-hand side.
         let Some(wa) = solver.solve(&Ak) else { break };
-        let Some(wg) = solver.solve(&Gk) else { break };
-        let a_next = product(&Ak, &wa);
         let akt = crate::dense::transposed(&Ak);
-        let g_next = &Gk + product(&product(&Ak, &wg), &akt);
         let h_next = &Hk + product(&product(&akt, &Hk), &wa);
         let change = crate::dense::amax((&h_next - &Hk).as_slice());
         let scale = crate::dense::amax(h_next.as_slice()).max(f64::MIN_POSITIVE);
@@ -1067,12 +1067,14 @@ fn filter_dare_doubling(
         }
         last_change = change;
         peak_change = peak_change.max(change);
-        Ak = a_next;
-        Gk = crate::dense::symmetrized(&g_next);
         Hk = crate::dense::symmetrized(&h_next);
-        if change <= 1e-14 * scale {
+        if change <= 1e-14 * scale || step + 1 == max_steps {
             break;
         }
+        let Some(wg) = solver.solve(&Gk) else { break };
+        let g_next = &Gk + product(&product(&Ak, &wg), &akt);
+        Ak = product(&Ak, &wa);
+        Gk = crate::dense::symmetrized(&g_next);
     }
     (Hk, steps)
 }
