@@ -2465,7 +2465,9 @@ mod tests {
 
     /// A bootstrap replicate's refinement ([`Wanted::Values`]) skips only runs that state
     /// errors: its values are the full refinement's to the bit, and it has no wide error
-    /// secant (no secant disagreement) while the full one has. Three cases on noisy
+    /// secant (no secant disagreement) while the full one has; the refinement whose errors
+    /// are the residuals' lag window's ([`Wanted::ValuesAndLagWindowErrors`], a sine or an
+    /// impact) has the same values to the bit and other errors from rest. Three cases on noisy
     /// 300-sample records, started 2 % off: a friction law from rest; the same with a start
     /// state fitted (a record in motion, as the bootstrap now refines them); and a law whose
     /// friction is 0, started at 50 N (where the full refinement can look back at the
@@ -2504,9 +2506,22 @@ mod tests {
                 .unwrap()
             };
             let (full, replicate) = (run(Wanted::ValuesAndErrors), run(Wanted::Values));
+            let lag_window = run(Wanted::ValuesAndLagWindowErrors);
             let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
             let case = format!("friction {friction}, in motion {in_motion}");
             assert_eq!(bits(&full.values), bits(&replicate.values), "{case}");
+            // The lag window changes the stated errors only: the same values to the bit,
+            // and from rest errors of another covariance (in motion both are the window's).
+            assert_eq!(bits(&full.values), bits(&lag_window.values), "{case}");
+            assert!(!lag_window.report.noise_driven_errors, "{case}");
+            assert_eq!(full.report.noise_driven_errors, !in_motion, "{case}");
+            if !in_motion {
+                assert_ne!(
+                    bits(&full.std_errors),
+                    bits(&lag_window.std_errors),
+                    "{case}"
+                );
+            }
             assert!(full.report.secant_disagreement.is_some(), "{case}");
             assert!(replicate.report.secant_disagreement.is_none(), "{case}");
             // It is an answer: the stiffness back within 1 % of the truth from 2 % off.
