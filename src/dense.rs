@@ -163,17 +163,10 @@ pub fn product(a: &DMatrix<f64>, b: &DMatrix<f64>) -> DMatrix<f64> {
         // Written element by element by the kernel: not zeroed first (the zeroing and its
         // allocation were 2.5 % of a replay's instructions, callgrind, forty-first session).
         let mut out = Vec::<f64>::with_capacity(rows * cols);
-        // SAFETY: the kernel's features were checked (`fused_path`); it writes every one
-        // of the `rows × cols` elements of `out`'s capacity before the length is set.
+        // SAFETY: `fused_path` accepted the shapes; the kernel writes every one of the
+        // `rows × cols` elements of `out`'s capacity before the length is set.
         unsafe {
-            product_fused(
-                rows,
-                inner,
-                cols,
-                a.as_slice(),
-                b.as_slice(),
-                out.as_mut_ptr(),
-            );
+            product_fused_of(a, b, out.as_mut_ptr());
             out.set_len(rows * cols);
         }
         return DMatrix::from_vec(rows, cols, out);
@@ -207,23 +200,14 @@ pub fn product_into(out: &mut DMatrix<f64>, a: &DMatrix<f64>, b: &DMatrix<f64>) 
     if out.shape() != (rows, cols) {
         *out = DMatrix::zeros(rows, cols);
     }
+    #[cfg(target_arch = "x86_64")]
+    if fused_path(rows, inner, cols) {
+        // SAFETY: `fused_path` accepted the shapes; `out` holds `rows × cols` elements.
+        unsafe { product_fused_of(a, b, out.as_mut_slice().as_mut_ptr()) };
+        return;
+    }
     const SMALL_DIM: usize = 5;
     if rows > SMALL_DIM && cols > SMALL_DIM && inner > SMALL_DIM {
-        #[cfg(target_arch = "x86_64")]
-        if inner <= DGEMM_KC && fused_dgemm_kernel() {
-            // SAFETY: the features `fused_dgemm_kernel` checked are the kernel's.
-            unsafe {
-                product_fused(
-                    rows,
-                    inner,
-                    cols,
-                    a.as_slice(),
-                    b.as_slice(),
-                    out.as_mut_slice().as_mut_ptr(),
-                )
-            };
-            return;
-        }
         *out = a * b;
         return;
     }
@@ -235,6 +219,26 @@ pub fn product_into(out: &mut DMatrix<f64>, a: &DMatrix<f64>, b: &DMatrix<f64>) 
             &b.as_slice()[start..start + inner],
             Op::Set,
         );
+    }
+}
+
+/// [`product_fused`] of two matrices into `out`.
+///
+/// # Safety
+/// [`fused_path`] must accept the shapes, and `out` point to `a.nrows() × b.ncols()`
+/// writable elements (only written).
+#[cfg(target_arch = "x86_64")]
+unsafe fn product_fused_of(a: &DMatrix<f64>, b: &DMatrix<f64>, out: *mut f64) {
+    // SAFETY: the caller's (the features were checked by `fused_path`).
+    unsafe {
+        product_fused(
+            a.nrows(),
+            a.ncols(),
+            b.ncols(),
+            a.as_slice(),
+            b.as_slice(),
+            out,
+        )
     }
 }
 
