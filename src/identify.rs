@@ -720,15 +720,6 @@ fn kalman_filter_run(
 /// The passes themselves, the parameters and their errors use the whole record.
 pub const TUNE_SAMPLES: usize = 10_000;
 
-/// The note of a `sign(u)` law refined by prediction error at one model sub-step per sample
-/// without a bootstrap. Where the likelihood keeps one sub-step (data integrated as the
-/// model integrates them), a stick–slip switch moves the friction force for a whole sample
-/// and the answer's place on the rough cost spreads more than the sandwich sees: on fresh
-/// seeds (8101–8250, the friction setup, 1 % noise) the sandwich records' `sign(u)` and `u`
-/// came out at rms 1.7–2.2 of their stated errors, 86–88 % coverage, worst 6.2; the
-/// secant disagreement does not tell them apart (ACCURACY.md, forty-fourth session).
-pub const ONE_SUBSTEP_FRICTION_NOTE: &str = "one model sub-step per sample with a `sign(u)` law and no bootstrap: on such records the stated errors of the friction and the stiffness were measured at about half the spread of the answers";
-
 /// Half-width, in decades, of a re-tune's search of the random-walk std around the previous
 /// tuning's (a 1-decade grid of 7 points, then Brent). Measured between the first two
 /// tunings of the shipped friction replay: 3.1e4 → 978 N (1.5 decades); the noise scale the
@@ -2245,12 +2236,6 @@ fn finish_with_output_error(
                         {
                             result.notes.push(format!(
                                 "parametric bootstrap switched off (`--bootstrap 0`): the errors of this `{friction_term}` law are the sandwich's, which {why} (ACCURACY.md)"
-                            ))
-                        } else if raised == 1 && has_sign_u_basis(setup) {
-                            // Measured on fresh seeds (forty-fourth session): the one case
-                            // of the acceptance sweep whose sandwich errors do not hold.
-                            result.notes.push(format!(
-                                "{ONE_SUBSTEP_FRICTION_NOTE} (`--bootstrap 10` gives errors that hold there: 94–96 % coverage, about 4× the time; ACCURACY.md, forty-fourth session)"
                             ))
                         }
                     }
