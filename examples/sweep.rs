@@ -7,10 +7,13 @@
 //! cargo run --release --example sweep -- SETUP [--estimator ml|kalman|paper] [--seeds 50]
 //!     [--substeps 1,8,64] [--noise 0.01,0.1] [--steps 2000] [--skip 0] [--rms 2e4] [--verbose]
 //!     [--from 1] [--true-sigma] [--notes] [--mid-record] [--bootstrap N]
+//!     [--scenario random|sine|free] [--freq 200] [--pulse 0.005]
 //! ```
 //! The excitation is `jointid simulate`'s random input with RMS `--rms` N (default 2e4, the
 //! command's default: what a user who follows the README gets; a law linear in the state
-//! gives the same relative figures at any level, a friction law does not).
+//! gives the same relative figures at any level, a friction law does not). `--scenario
+//! sine` is a sine of `--freq` Hz and amplitude `--rms` N; `--scenario free` an impact
+//! (a half-sine of `--pulse` s and peak `--rms` N) and the free decay after it.
 //! `--skip K` drops the first K samples (a record that starts in motion); with `--mid-record`
 //! the identification is told so (as a live window after the first is), otherwise it finds
 //! out or not. `--bootstrap N` asks for N replicates (default: automatic). The setup's truth
@@ -36,6 +39,18 @@ fn main() -> anyhow::Result<()> {
         anyhow::bail!("--mid-record says the record is cut: give --skip K > 0");
     }
     let rms: f64 = get("--rms", "2e4").parse()?;
+    let scenario = match get("--scenario", "random").as_str() {
+        "random" => Scenario::Random { rms },
+        "sine" => Scenario::Sine {
+            freq_hz: get("--freq", "200").parse()?,
+            amplitude: rms,
+        },
+        "free" => Scenario::Free {
+            amplitude: rms,
+            pulse_s: get("--pulse", "0.005").parse()?,
+        },
+        other => anyhow::bail!("--scenario {other}: expected random, sine or free"),
+    };
     let subs: Vec<usize> = get("--substeps", "1,8,64")
         .split(',')
         .map(|s| s.parse())
@@ -46,7 +61,7 @@ fn main() -> anyhow::Result<()> {
         .collect::<Result<_, _>>()?;
     let keys = setup.param_keys();
     println!(
-        "setup {path}, estimator {kind}, {seeds} seeds, {steps} samples (first {skip} dropped), random excitation RMS {rms} N"
+        "setup {path}, estimator {kind}, {seeds} seeds, {steps} samples (first {skip} dropped), excitation {scenario:?}"
     );
     println!(
         "| data sub-steps | noise | answered | failed | coverage 95 % | max abs(err)/se | mean time s | median time s | 90th pct time s | bootstrapped |"
@@ -67,7 +82,7 @@ fn main() -> anyhow::Result<()> {
                 let sim = simulate(
                     &setup,
                     &SimulateOptions {
-                        scenario: Scenario::Random { rms },
+                        scenario,
                         steps: steps + skip,
                         dt_s: setup.dt_s,
                         substeps: s,

@@ -76,6 +76,11 @@ pub struct OutputErrorReport {
     /// `identify::bootstrap`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub bootstrap: Option<super::prediction_error::BootstrapReport>,
+    /// Set when the free run took the excitation as smooth between samples
+    /// (`identify::smooth_between_samples`): the log-likelihood gain, ½Δχ², of its refined
+    /// answer over the answer with the excitation linear between samples.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub smooth_excitation_gain: Option<f64>,
 }
 
 fn is_sign(b: &Basis) -> bool {
@@ -421,6 +426,7 @@ pub fn refine(
             prediction_error: None,
             secant_disagreement: None,
             bootstrap: None,
+            smooth_excitation_gain: None,
         },
     })
 }

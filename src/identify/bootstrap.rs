@@ -64,16 +64,20 @@ pub(super) fn free_run_bootstrap(
         return;
     }
     let t0 = std::time::Instant::now();
-    let boot = replicate(setup, data, opts, &values, substeps, replicates).unwrap_or_else(|e| {
-        BootstrapReport {
-            replicates,
-            used: 0,
-            noise: Vec::new(),
-            shift: Vec::new(),
-            spread: Vec::new(),
-            failure: Some(e),
-        }
-    });
+    // Simulated with the excitation the answer was fitted with (smooth between samples or
+    // not, `identify::smooth_between_samples`); each replicate decides that again.
+    let fitted = super::as_fitted(data, result).excitation.clone();
+    let boot =
+        replicate(setup, data, &fitted, opts, &values, substeps, replicates).unwrap_or_else(|e| {
+            BootstrapReport {
+                replicates,
+                used: 0,
+                noise: Vec::new(),
+                shift: Vec::new(),
+                spread: Vec::new(),
+                failure: Some(e),
+            }
+        });
     crate::par::phase("free-run bootstrap", t0);
     let why = format!("{replicates} replicates asked for");
     let Some(last) = result.passes.last_mut() else {
@@ -125,6 +129,7 @@ pub(super) fn free_run_bootstrap(
 fn replicate(
     setup: &Setup,
     data: &TestData,
+    fitted_excitation: &[Vec<f64>],
     opts: &IdentifyOptions,
     values: &[f64],
     substeps: usize,
@@ -135,7 +140,7 @@ fn replicate(
         setup,
         &model,
         values,
-        &data.excitation,
+        fitted_excitation,
         setup.dt_s,
         substeps,
     )
