@@ -88,6 +88,17 @@ pub fn predicted_response(
             scheme: fit.scheme,
             substeps: fit.substeps,
         };
+        // The excitation as the fit read it between samples.
+        let smoothed;
+        let data = if fit.between == ml::Between::Smooth {
+            smoothed = TestData {
+                excitation: crate::estimate::moment_matched(&data.excitation),
+                ..data.clone()
+            };
+            &smoothed
+        } else {
+            data
+        };
         let tr = ml::predict(setup, model, data, &fit.params, Some(&fit.initial_state), d)
             .map_err(|e| e.to_string())?;
         tr.y.chunks(m).map(<[f64]>::to_vec).collect()
