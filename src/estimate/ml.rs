@@ -46,6 +46,13 @@
 //! record, so the whole fit runs from two (`START_PREFIXES`, one after the other) and the
 //! answer is the one of higher likelihood on the whole record.
 //!
+//! **Which model the record was made with** — the exact map or Newmark with 1, 2, … 64
+//! sub-steps (what a simulation may have used), the excitation linear between samples or
+//! smooth (moment-matched, `estimate::moment_matched`) — is a discrete nuisance
+//! parameter: every candidate is refitted from the answer and weighed by its likelihood;
+//! where the data do not single one out the answer is the posterior mean over them, its
+//! errors including their spread (`average_over_models`).
+//!
 //! # Scope (measured, see ACCURACY.md)
 //! Laws linear in the state (`u`, `v`, `a`, `const`) on the two-beam problem: right on data
 //! of 1, 8 and 64 Newmark sub-steps and on records that start in motion, the errors at the
@@ -181,7 +188,7 @@ pub struct MlFit {
     /// How the excitation was read between samples (chosen by likelihood).
     pub between: Between,
     /// The models the answer was averaged over and their posterior weights, when the data
-    /// did not single one out (empty otherwise; see [`average_over_models`]).
+    /// did not single one out (empty otherwise; see `average_over_models`).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub model_weights: Vec<(String, f64)>,
     /// Measured effect of the non-linear force's hold on the outputs at the estimate, in noise
