@@ -1647,21 +1647,13 @@ fn average_over_models(
     let rest: Vec<&MlFit> = fits.iter().map(|f| &f.1).collect();
     let models: Vec<&MlFit> = std::iter::once(&fit).chain(rest.iter().copied()).collect();
     let np = fit.params.len();
-    let mut mean = vec![0.0; np];
-    let mut se = vec![0.0; np];
-    for j in 0..np {
-        mean[j] = models
+    let (mean, se) = mixture(
+        &models
             .iter()
-            .zip(&weights)
-            .map(|(f, w)| w * f.params[j])
-            .sum();
-        let var: f64 = models
-            .iter()
-            .zip(&weights)
-            .map(|(f, w)| w * (f.std_errors[j].powi(2) + (f.params[j] - mean[j]).powi(2)))
-            .sum();
-        se[j] = var.sqrt();
-    }
+            .map(|f| (f.params.as_slice(), f.std_errors.as_slice()))
+            .collect::<Vec<_>>(),
+        &weights,
+    );
     let (widest, ratio) = (0..np)
         .map(|j| (j, se[j] / fit.std_errors[j].max(f64::MIN_POSITIVE)))
         .fold((0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
@@ -1690,6 +1682,27 @@ fn average_over_models(
     fit.params = mean;
     fit.std_errors = se;
     Ok((fit, trace))
+}
+
+/// Mean and standard error, per parameter, of the mixture of the models' estimates
+/// `(values, standard errors)` with `weights` (summing to 1): the law of total variance,
+/// `var = Σ wᵢ (seᵢ² + (θᵢ − θ̄)²)`.
+fn mixture(models: &[(&[f64], &[f64])], weights: &[f64]) -> (Vec<f64>, Vec<f64>) {
+    let np = models.first().map_or(0, |m| m.0.len());
+    let mean: Vec<f64> = (0..np)
+        .map(|j| models.iter().zip(weights).map(|(m, w)| w * m.0[j]).sum())
+        .collect();
+    let se = (0..np)
+        .map(|j| {
+            models
+                .iter()
+                .zip(weights)
+                .map(|(m, w)| w * (m.1[j].powi(2) + (m.0[j] - mean[j]).powi(2)))
+                .sum::<f64>()
+                .sqrt()
+        })
+        .collect();
+    (mean, se)
 }
 
 /// The label ([`Variant`]'s) of the model a fit was made with.
@@ -2599,6 +2612,22 @@ pub fn predict(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The mixture of two equally likely models one error apart on each side of their mean
+    /// has that mean and √2 errors (within-model variance 1 plus between-model variance 1);
+    /// one model alone is itself; unequal weights pull the mean.
+    #[test]
+    fn the_model_average_is_the_mixture_by_total_variance() {
+        let (a, b) = ([0.0, 10.0], [2.0, 10.0]);
+        let se = [1.0, 0.5];
+        let (mean, err) = mixture(&[(&a, &se), (&b, &se)], &[0.5, 0.5]);
+        assert_eq!(mean, vec![1.0, 10.0]);
+        assert!((err[0] - 2f64.sqrt()).abs() < 1e-12 && (err[1] - 0.5).abs() < 1e-12);
+        let (mean, err) = mixture(&[(&a, &se)], &[1.0]);
+        assert_eq!((mean, err), (a.to_vec(), se.to_vec()));
+        let (mean, _) = mixture(&[(&a, &se), (&b, &se)], &[0.75, 0.25]);
+        assert!((mean[0] - 0.5).abs() < 1e-12);
+    }
 
     /// The paper's two-beam setup with the connection law `u, v`.
     fn spring_uv() -> Setup {
