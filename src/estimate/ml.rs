@@ -1440,19 +1440,7 @@ pub fn identify_ml(
         }
     }
     // (At least one setting always runs, so `first_error` is set when `best` is not.)
-    let Some((
-        _,
-        StartFit {
-            pt,
-            d,
-            disc_error,
-            compared,
-            screened,
-            stages,
-            iterations,
-        },
-    )) = best
-    else {
+    let Some((_, start_fit)) = best else {
         return Err(first_error.unwrap_or(MlError::TooShort {
             got: prob.samples,
             needed,
@@ -1463,19 +1451,7 @@ pub fn identify_ml(
         ..data.clone()
     };
     let smooth = Problem::new(setup, model, &smooth_data)?;
-    average_over_models(
-        [&prob, &smooth],
-        StartFit {
-            pt,
-            d,
-            disc_error,
-            compared,
-            screened,
-            stages,
-            iterations,
-        },
-        opts,
-    )
+    average_over_models([&prob, &smooth], start_fit, opts)
 }
 
 /// Models whose likelihood is more than this below the likeliest's (Δ(−ln L), a posterior
