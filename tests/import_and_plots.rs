@@ -532,17 +532,27 @@ fn a_smooth_force_is_taken_smooth_between_samples_and_the_joint_recovered() {
     assert_sdof_joint_within(&v, 0.001, "default (ml)");
 }
 
-/// The smooth-force test at ~10 % noise, four draws, replayed with the defaults: there the
+/// The smooth-force test at ~10 % noise, replayed with the defaults, on four draws where the
 /// likelihood barely tells the exact map from Newmark with few sub-steps (whose period error
-/// a stiffer spring absorbs), and the answer is averaged over the models it cannot tell
-/// apart; every estimate within 3 standard errors. (The evidence is the 50-seed campaign of
-/// `scripts/sdof_sines_campaign.py`, ACCURACY.md; these four guard the mechanism.)
+/// a stiffer spring absorbs): taking the likeliest model (de86b2a) put the spring +22.2,
+/// +8.7, +26.6 and +8.8 standard errors off on draws 12, 24, 31 and 34. The answer is now
+/// averaged over the models the data cannot tell apart (the note says so; measured +0.7,
+/// +0.5, +0.7, +0.3 errors off) and every estimate is within 3 standard errors. (The
+/// evidence is the 50-seed campaign of `scripts/sdof_sines_campaign.py`, ACCURACY.md;
+/// these four guard the mechanism.)
 #[test]
 fn the_default_estimator_holds_on_smooth_force_tests_at_ten_percent_noise() {
     let dir = tempfile::tempdir().unwrap();
-    for seed in 1..=4 {
+    for seed in [12, 24, 31, 34] {
         let (rec, _) = replay_sdof(dir.path(), &format!("noisy{seed}"), 0.0, 50.0, seed);
         let v = common::replay_json(&[rec.to_str().unwrap()]);
+        let notes = notes_of(&v);
+        assert!(
+            notes
+                .iter()
+                .any(|n| n.starts_with("discretisation:") && n.contains("do not single out")),
+            "seed {seed}: the answer was not averaged over the models: {notes:?}"
+        );
         assert_sdof_joint_within(&v, 0.01, &format!("seed {seed}"));
     }
 }

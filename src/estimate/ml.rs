@@ -1493,22 +1493,18 @@ fn average_over_models(
     let chosen_cost = pt_cost(probs[0], &sf.pt, sf.d)?;
     // Screening: the linear alternatives were refitted briefly in `fit_from_start`; the smooth
     // ones are, each from its discretisation's linear point.
-    let mut starts: Vec<(Variant, Point)> = vec![(chosen, sf.pt.clone())];
-    starts.extend(sf.screened.iter().map(|(d, p)| (linear(*d), p.clone())));
-    let smooth_starts: Vec<(Variant, Point)> = starts
-        .iter()
-        .map(|(v, p)| {
-            (
-                Variant {
-                    d: v.d,
-                    between: Between::Smooth,
-                },
-                p.clone(),
-            )
+    let smooth_starts: Vec<(Variant, &Point)> = std::iter::once((sf.d, &sf.pt))
+        .chain(sf.screened.iter().map(|(d, p)| (*d, p)))
+        .map(|(d, p)| {
+            let smooth = Variant {
+                d,
+                between: Between::Smooth,
+            };
+            (smooth, p)
         })
         .collect();
     let smooth_screened = crate::par::map(&smooth_starts, |(v, p)| {
-        let mut cand = p.clone();
+        let mut cand = (*p).clone();
         fit_stage(
             probs[1],
             &mut cand,
