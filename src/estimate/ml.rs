@@ -917,6 +917,12 @@ impl<'a> Problem<'a> {
                 0.0
             };
         }
+        // A law with no non-linear term and no constant leaves the connection force's
+        // non-linear part at zero: its products and its implicit solve are skipped (they
+        // would add zeros).
+        let force_free = laws
+            .iter()
+            .all(|l| !l.has_state_terms() && l.constant == 0.0);
         for i in 0..len {
             // Read-out at sample i.
             if self.needs_acc || full {
@@ -957,6 +963,11 @@ impl<'a> Problem<'a> {
                 gemv(&mut zs, &disc.Phi, &z, Op::Set);
                 gemv(&mut zs, &disc.G1p, &pa, Op::Add);
                 gemv(&mut zs, &disc.G2p, &dp, Op::Add);
+                if force_free {
+                    std::mem::swap(&mut z, &mut zs);
+                    pa.copy_from(&pb);
+                    continue;
+                }
                 gemv(&mut zs, &disc.G1f, &f, Op::Add);
                 gemv(&mut zs, &disc.G2f, &f, Op::Subtract);
                 // Implicit force at the sub-step's end (Gauss–Seidel over connections).
@@ -986,7 +997,12 @@ impl<'a> Problem<'a> {
                 pa.copy_from(&pb);
             }
             pe.copy_from(&pe_next);
-            if !z.iter().all(|v| v.is_finite()) || z.amax() > 1e100 {
+            // Not finite, or beyond 1e100: diverged. (One branch-free pass: `!(|v| ≤ 1e100)`
+            // holds for NaN and ±∞ too; the two passes it replaces were a third of the
+            // loop's own time.)
+            if z.iter().fold(false, |bad, v| {
+                bad | v.abs().partial_cmp(&1e100).is_none_or(|o| o.is_gt())
+            }) {
                 return Err(i + 1);
             }
         }
@@ -1184,6 +1200,151 @@ fn free_response_columns(
     zc
 }
 
+/// The column-scaled normal equations `(JᵀJ, Jᵀr)` and the columns' scales.
+type NormalEquations = (DMatrix<f64>, DVector<f64>, Vec<f64>);
+
+/// Normal equations of the column-scaled Jacobian at `pt` over the first `len` samples:
+/// [`normal`] of [`jacobian`], but without the initial state's columns where the outputs are
+/// affine in it (a law linear in the state, one map per sample, every output of the prefix
+/// measured). There the free response `Zᵢ = D H Φⁱ` (`D` the channels' `1/σ`) enters the
+/// normal equations only through the observability Gramian `Σᵢ ZᵢᵀZᵢ`, summed by doubling
+/// (`G₂ₗ = Gₗ + Φˡᵀ Gₗ Φˡ`), and the products `Σᵢ Zᵢᵀ vᵢ` with the residual and the
+/// parameters' columns, one backward pass (`λ ← Φᵀλ + HᵀD vᵢ`). Why: the 2n columns of
+/// length m × len and their pairwise products were half of an identification's
+/// instructions (the read-out rows `H Φⁱ` propagated at every sample, then 253 dot
+/// products of 24,000 terms on the two-beam problem); the same sums, taken in another
+/// order, agree to rounding.
+#[allow(clippy::too_many_arguments)]
+#[allow(non_snake_case)]
+fn normal_equations(
+    prob: &Problem,
+    pt: &Point,
+    base: &Trace,
+    disc: &Discrete,
+    len: usize,
+    sigma: &[f64],
+    active: &[usize],
+    free_z0: bool,
+) -> Result<NormalEquations, MlError> {
+    let m = prob.m;
+    let implicit = free_z0
+        && !prob.law_is_nonlinear()
+        && disc.steps_per_sample == 1
+        && prob.measured[..len * m].iter().all(|y| y.is_finite());
+    if !implicit {
+        return Ok(normal(&jacobian(
+            prob, pt, base, disc, len, sigma, active, free_z0,
+        )?));
+    }
+    // The residual and the parameters' columns (no initial-state columns).
+    let jac = jacobian(prob, pt, base, disc, len, sigma, active, false)?;
+    let na = jac.cols.len();
+    let ns = 2 * prob.n;
+    let nc = na + ns;
+    // Read-out rows over the noise levels: `D H`.
+    let mut H = DMatrix::zeros(m, ns);
+    for (k, st) in prob.model.stations.iter().enumerate() {
+        match st.quantity {
+            Quantity::Displacement => H[(k, st.dof)] = 1.0,
+            Quantity::Velocity => H[(k, prob.n + st.dof)] = 1.0,
+            Quantity::Acceleration => H.row_mut(k).copy_from(&disc.Au.row(st.dof)),
+        }
+        let w = 1.0 / sigma[k];
+        H.row_mut(k).iter_mut().for_each(|h| *h *= w);
+    }
+    // Backward pass: `λ = Σᵢ Φⁱᵀ Hᵀ D vᵢ` for every column `v` (the parameters', then the
+    // residual) at once.
+    // (`HᵀD vᵢ` by the read-out rows' non-zeros: a displacement or velocity station reads
+    // one state.)
+    let rows: Vec<Vec<(usize, f64)>> = (0..m)
+        .map(|k| {
+            (0..ns)
+                .filter(|&s| H[(k, s)] != 0.0)
+                .map(|s| (s, H[(k, s)]))
+                .collect()
+        })
+        .collect();
+    let columns: Vec<&[f64]> = jac
+        .cols
+        .iter()
+        .map(Vec::as_slice)
+        .chain(std::iter::once(jac.r.as_slice()))
+        .collect();
+    let PhiT = disc.Phi.transpose();
+    let mut lam = DMatrix::zeros(ns, na + 1);
+    let mut next = DMatrix::zeros(ns, na + 1);
+    for i in (0..len).rev() {
+        crate::dense::product_into(&mut next, &PhiT, &lam);
+        for (k, row) in rows.iter().enumerate() {
+            for (c, col) in columns.iter().enumerate() {
+                let x = col[i * m + k];
+                for &(s, h) in row {
+                    next[(s, c)] += h * x;
+                }
+            }
+        }
+        std::mem::swap(&mut lam, &mut next);
+    }
+    // The Gramian `Σ_{i<len} Φⁱᵀ HᵀD²H Φⁱ` by doubling over the bits of `len`.
+    let mut block = H.transpose() * &H; // G over a block of `size` samples
+    let mut power = disc.Phi.clone(); // Φ^size
+    let mut gram = DMatrix::zeros(ns, ns);
+    let mut offset = DMatrix::identity(ns, ns); // Φ^(samples summed so far)
+    let mut rest = len;
+    while rest > 0 {
+        if rest & 1 == 1 {
+            let moved = offset.transpose() * &block * &offset;
+            gram += moved;
+            offset = &offset * &power;
+        }
+        rest >>= 1;
+        if rest > 0 {
+            let shifted = power.transpose() * &block * &power;
+            block += shifted;
+            power = &power * &power;
+        }
+    }
+    // The unscaled normal equations in [`normal`]'s order: parameters, then `z₀`.
+    let mut A = DMatrix::zeros(nc, nc);
+    let mut g = DVector::zeros(nc);
+    for a in 0..na {
+        let others: Vec<&[f64]> = jac.cols[a..]
+            .iter()
+            .map(Vec::as_slice)
+            .chain(std::iter::once(jac.r.as_slice()))
+            .collect();
+        let sums = dots(&jac.cols[a], &others);
+        for b in a..na {
+            A[(a, b)] = sums[b - a];
+            A[(b, a)] = sums[b - a];
+        }
+        g[a] = sums[na - a];
+        for s in 0..ns {
+            A[(a, na + s)] = lam[(s, a)];
+            A[(na + s, a)] = lam[(s, a)];
+        }
+    }
+    for s in 0..ns {
+        for t in 0..ns {
+            A[(na + s, na + t)] = 0.5 * (gram[(s, t)] + gram[(t, s)]);
+        }
+        g[na + s] = lam[(s, na)];
+    }
+    let scale: Vec<f64> = (0..nc)
+        .map(|a| {
+            let s = A[(a, a)].sqrt();
+            if s > 0.0 && s.is_finite() { s } else { 1.0 }
+        })
+        .collect();
+    for a in 0..nc {
+        for b in 0..nc {
+            A[(a, b)] /= scale[a] * scale[b];
+        }
+        g[a] /= scale[a];
+    }
+    Ok((A, g, scale))
+}
+
 /// Normal equations of the column-scaled Jacobian.
 fn normal(jac: &Jacobian) -> (DMatrix<f64>, DVector<f64>, Vec<f64>) {
     let nc = jac.cols.len();
@@ -1316,8 +1477,7 @@ fn fit_stage(
                     .max(sigma_floor(prob, k, len))
             })
             .collect();
-        let jac = jacobian(prob, pt, &base, &disc, len, &sigma, active, free_z0)?;
-        let (A, g, scale) = normal(&jac);
+        let (A, g, scale) = normal_equations(prob, pt, &base, &disc, len, &sigma, active, free_z0)?;
         let decrement = g.dot(&(pinv_sym(&A, 1e-14) * &g));
         if decrement < converged_below {
             return Ok(iters);
@@ -1367,7 +1527,11 @@ fn fit_stage(
             let steps = (prob.samples * d.substeps) as f64;
             let unstable = || {
                 !prob.passive(&cand.p)
-                    && crate::estimate::spectral_radius(&cd.Phi) > 1.0 + 10f64.ln() / steps
+                    && crate::estimate::spectral_radius_exceeds(
+                        &cd.Phi,
+                        1.0 + 10f64.ln() / steps,
+                        steps,
+                    )
             };
             if lc < l && !unstable() {
                 *pt = cand;
@@ -2161,8 +2325,7 @@ fn determined(
                 .max(sigma_floor(prob, k, len))
         })
         .collect();
-    let jac = jacobian(prob, pt, &base, &disc, len, &sigma, active, free_z0)?;
-    let (A, _, scale) = normal(&jac);
+    let (A, _, scale) = normal_equations(prob, pt, &base, &disc, len, &sigma, active, free_z0)?;
     let cov = pinv_sym(&A, 1e-15);
     Ok(active.iter().enumerate().all(|(a, &j)| {
         let se = cov[(a, a)].max(0.0).sqrt() / scale[a];
