@@ -799,7 +799,33 @@ impl<'a> Problem<'a> {
         // map of the same first-order-hold form (inputs linear across the sample):
         // Φ' = Φˢ, Γ₁' = Σⱼ Φʲ Γ₁, Γ₂' = Σₖ Φˢ⁻¹⁻ᵏ (k Γ₁ + Γ₂)/s.
         let composed = substeps > 1 && !self.law_is_nonlinear();
-        let (Phi, g1, g2) = if composed {
+        let (Phi, g1, g2) = if composed && substeps.is_power_of_two() {
+            // By doubling (the candidates' sub-steps are powers of two): with `T₀ = Σ_{j<L}
+            // Φʲ` and `T₁ = Σ_{j<L} j Φʲ` acting on the input columns, `Γ₁' = T₀Γ₁` and
+            // `Γ₂' = (T₀Γ₂ + (s − 1)T₀Γ₁ − T₁Γ₁)/s` (j = s − 1 − k above); a doubling
+            // `L → 2L` is `T₀ ← T₀ + ΦᴸT₀`, `T₁ ← T₁ + Φᴸ(T₁ + L T₀)`, `Φᴸ ← ΦᴸΦᴸ`. Why: the
+            // sub-step loop made s products of the state matrix per discretisation, log₂ s
+            // here; at 64 sub-steps the loop was most of a likelihood evaluation's cost on
+            // short prefixes (the early choice of the discretisation).
+            let mut P = Phi;
+            let mut a1 = g1.clone();
+            let mut a2 = g2.clone();
+            let mut b1 = DMatrix::zeros(ns, nu);
+            let mut l = 1usize;
+            while l < substeps {
+                let shifted_b1 = product(&P, &(&b1 + &a1 * (l as f64)));
+                b1 += shifted_b1;
+                let shifted_a1 = product(&P, &a1);
+                a1 += shifted_a1;
+                let shifted_a2 = product(&P, &a2);
+                a2 += shifted_a2;
+                P = product(&P, &P);
+                l *= 2;
+            }
+            let sf = substeps as f64;
+            let c2 = (&a2 + &a1 * (sf - 1.0) - &b1) * (1.0 / sf);
+            (P, a1, c2)
+        } else if composed {
             let mut P = DMatrix::<f64>::identity(ns, ns);
             let mut c1 = DMatrix::zeros(ns, nu);
             let mut c2 = DMatrix::zeros(ns, nu);
@@ -923,6 +949,17 @@ impl<'a> Problem<'a> {
         let force_free = laws
             .iter()
             .all(|l| !l.has_state_terms() && l.constant == 0.0);
+        // Where each station reads: an entry of the state, or of the accelerations.
+        let readout: Vec<(usize, bool)> = self
+            .model
+            .stations
+            .iter()
+            .map(|st| match st.quantity {
+                Quantity::Displacement => (st.dof, false),
+                Quantity::Velocity => (n + st.dof, false),
+                Quantity::Acceleration => (st.dof, true),
+            })
+            .collect();
         // The sub-steps' ends as fractions of the sample (one division each, not one per
         // sample: its latency stalled the loop).
         let fractions: Vec<f64> = (1..=substeps).map(|s| s as f64 / substeps as f64).collect();
@@ -933,12 +970,9 @@ impl<'a> Problem<'a> {
                 gemv(&mut acc, &disc.Ap, &pe, Op::Add);
                 gemv(&mut acc, &disc.Af, &f, Op::Add);
             }
-            for (k, st) in self.model.stations.iter().enumerate() {
-                out.y[i * m + k] = match st.quantity {
-                    Quantity::Displacement => z[st.dof],
-                    Quantity::Velocity => z[n + st.dof],
-                    Quantity::Acceleration => acc[st.dof],
-                };
+            let (zv, av) = (z.as_slice(), acc.as_slice());
+            for (y, &(at, from_acc)) in out.y[i * m..(i + 1) * m].iter_mut().zip(&readout) {
+                *y = if from_acc { av[at] } else { zv[at] };
             }
             for c in 0..q {
                 let (d, dv) = (d_of(&z, c, 0), d_of(&z, c, n));
@@ -1911,6 +1945,9 @@ struct StartFit {
 /// seed only moves the failures; the likelihood of the whole record decides between them.
 const START_PREFIXES: [(usize, usize); 2] = [(4, 2), (8, 4)];
 
+/// Iterations of each candidate's descent in the early choice of the discretisation.
+const EARLY_CHOICE_ITERATIONS: usize = 10;
+
 /// The fit from the setup's initial values: the start grid on a prefix of `start_stages`
 /// first-stage lengths, the early choice of the discretisation on `early_stages`, the
 /// homotopy over doubling prefixes, the discretisation chosen on the whole record.
@@ -2083,7 +2120,7 @@ fn fit_from_start(
                 pt.clone(),
                 d,
                 len,
-                opts.max_iterations,
+                EARLY_CHOICE_ITERATIONS,
                 &linear,
                 opts.free_initial_state,
             )?;
