@@ -1112,6 +1112,7 @@ fn jacobian(
     sigma: &[f64],
     active: &[usize],
     free_z0: bool,
+    central: bool,
 ) -> Result<Jacobian, MlError> {
     let m = prob.m;
     let mut r = vec![0.0; len * m];
@@ -1164,13 +1165,21 @@ fn jacobian(
             } else {
                 prob.discretise(&pt.p, disc.desc)?
             };
+            let mut tr = Trace::default();
+            let ok1 = prob.simulate(&dp, &plus, &pt.z0, len, false, &mut tr);
+            if !central {
+                return Ok(vec![if ok1.is_err() {
+                    vec![0.0; len * m]
+                } else {
+                    column(&tr, None, step)
+                }]);
+            }
             let dm = if linear {
                 prob.discretise(&minus, disc.desc)?
             } else {
                 prob.discretise(&pt.p, disc.desc)?
             };
-            let (mut tr, mut tr2) = (Trace::default(), Trace::default());
-            let ok1 = prob.simulate(&dp, &plus, &pt.z0, len, false, &mut tr);
+            let mut tr2 = Trace::default();
             let ok2 = prob.simulate(&dm, &minus, &pt.z0, len, false, &mut tr2);
             Ok(vec![if ok1.is_err() || ok2.is_err() {
                 vec![0.0; len * m]
@@ -1271,11 +1280,11 @@ fn normal_equations(
         && prob.measured[..len * m].iter().all(|y| y.is_finite());
     if !implicit {
         return Ok(normal(&jacobian(
-            prob, pt, base, disc, len, sigma, active, free_z0,
+            prob, pt, base, disc, len, sigma, active, free_z0, false,
         )?));
     }
     // The residual and the parameters' columns (no initial-state columns).
-    let jac = jacobian(prob, pt, base, disc, len, sigma, active, false)?;
+    let jac = jacobian(prob, pt, base, disc, len, sigma, active, false, false)?;
     let na = jac.cols.len();
     let ns = 2 * prob.n;
     let nc = na + ns;
@@ -2521,6 +2530,7 @@ fn finish(
         &sigma,
         &all,
         opts.free_initial_state,
+        true,
     )?;
     let (A, _, scale) = normal(&jac);
     let nc = A.nrows();
