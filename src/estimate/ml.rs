@@ -1333,22 +1333,31 @@ fn normal_equations(
         std::mem::swap(&mut lam, &mut next);
     }
     // The Gramian `Σ_{i<len} Φⁱᵀ HᵀD²H Φⁱ` by doubling over the bits of `len`.
-    let mut block = H.transpose() * &H; // G over a block of `size` samples
+    // (`dense::product`: small products without matrixmultiply's packing.)
+    use crate::dense::product;
+    let mut block = product(&H.transpose(), &H); // G over a block of `size` samples
     let mut power = disc.Phi.clone(); // Φ^size
     let mut gram = DMatrix::zeros(ns, ns);
     let mut offset = DMatrix::identity(ns, ns); // Φ^(samples summed so far)
     let mut rest = len;
+    let mut first = true;
     while rest > 0 {
         if rest & 1 == 1 {
-            let moved = offset.transpose() * &block * &offset;
-            gram += moved;
-            offset = &offset * &power;
+            if first {
+                // Φ⁰: the block itself.
+                gram += &block;
+                offset = power.clone();
+                first = false;
+            } else {
+                gram += product(&offset.transpose(), &product(&block, &offset));
+                offset = product(&offset, &power);
+            }
         }
         rest >>= 1;
         if rest > 0 {
-            let shifted = power.transpose() * &block * &power;
+            let shifted = product(&power.transpose(), &product(&block, &power));
             block += shifted;
-            power = &power * &power;
+            power = product(&power, &power);
         }
     }
     // The unscaled normal equations in [`normal`]'s order: parameters, then `z₀`.
