@@ -2069,8 +2069,9 @@ fn fit_from_start(
                 })
                 .collect();
             let its = opts.screen_iterations + 3;
-            screened.extend(
-                crate::par::map(&grid, |cand| {
+            // Each point's brief descent over the other linear parameters.
+            let screen = |points: &[Point]| {
+                crate::par::map(points, |cand| {
                     descend(
                         prob,
                         cand.clone(),
@@ -2082,8 +2083,10 @@ fn fit_from_start(
                     )
                 })
                 .into_iter()
-                .flatten(),
-            );
+                .flatten()
+                .collect::<Vec<_>>()
+            };
+            screened.extend(screen(&grid));
             screened.sort_by(|a, b| a.0.total_cmp(&b.0));
             // Zoom: between the likeliest point's grid neighbours, a grid 2^(1/4) apart
             // (six more points, refitted as the grid's). At high noise the prefix's basins
@@ -2103,21 +2106,7 @@ fn fit_from_start(
                         cand
                     })
                     .collect();
-                screened.extend(
-                    crate::par::map(&fine, |cand| {
-                        descend(
-                            prob,
-                            cand.clone(),
-                            exact,
-                            len,
-                            its,
-                            &others,
-                            opts.free_initial_state,
-                        )
-                    })
-                    .into_iter()
-                    .flatten(),
-                );
+                screened.extend(screen(&fine));
                 screened.sort_by(|a, b| a.0.total_cmp(&b.0));
             }
             screened.truncate(3);
