@@ -963,6 +963,50 @@ impl<'a> Problem<'a> {
         // The sub-steps' ends as fractions of the sample (one division each, not one per
         // sample: its latency stalled the loop).
         let fractions: Vec<f64> = (1..=substeps).map(|s| s as f64 / substeps as f64).collect();
+        // Not finite, or beyond 1e100: diverged. (One branch-free pass over the bits: the
+        // magnitude's bits exceed 1e100's for a larger value, ±∞ and NaN alike; the two
+        // passes it replaces were a third of the loop's own time.)
+        const MAGNITUDE: u64 = 0x7fff_ffff_ffff_ffff;
+        let limit = 1e100f64.to_bits();
+        let diverged = |z: &DVector<f64>| {
+            z.iter()
+                .fold(false, |bad, v| bad | ((v.to_bits() & MAGNITUDE) > limit))
+        };
+        if force_free && substeps == 1 && !(self.needs_acc || full) {
+            // One map per sample and no connection force: the loop below without its
+            // sub-step bookkeeping (the same operations on the same numbers: the hold's end
+            // `1·w₊` is `w₊`), which took as long as the map's product.
+            for i in 0..len {
+                let zv = z.as_slice();
+                for (y, &(at, _)) in out.y[i * m..(i + 1) * m].iter_mut().zip(&readout) {
+                    *y = zv[at];
+                }
+                for c in 0..q {
+                    let (d, dv) = (d_of(&z, c, 0), d_of(&z, c, n));
+                    let da: f64 = self.lc[c].iter().map(|&(j, s)| s * acc[j]).sum();
+                    out.delta[i * q + c] = d;
+                    out.delta_v[i * q + c] = dv;
+                    out.delta_a[i * q + c] = da;
+                    out.force[i * q + c] = f[c] + lin[c].0 * d + lin[c].1 * dv + lin[c].2 * da;
+                }
+                if i + 1 == len {
+                    break;
+                }
+                for k in 0..ne {
+                    pe_next[k] = self.excitation_at(i + 1, k);
+                    dp[k] = pe_next[k] - pe[k];
+                }
+                gemv(&mut zs, &disc.Phi, &z, Op::Set);
+                gemv(&mut zs, &disc.G1p, &pe, Op::Add);
+                gemv(&mut zs, &disc.G2p, &dp, Op::Add);
+                std::mem::swap(&mut z, &mut zs);
+                pe.copy_from(&pe_next);
+                if diverged(&z) {
+                    return Err(i + 1);
+                }
+            }
+            return Ok(());
+        }
         for i in 0..len {
             // Read-out at sample i.
             if self.needs_acc || full {
@@ -1033,14 +1077,7 @@ impl<'a> Problem<'a> {
                 pa.copy_from(&pb);
             }
             pe.copy_from(&pe_next);
-            // Not finite, or beyond 1e100: diverged. (One branch-free pass over the bits: the
-            // magnitude's bits exceed 1e100's for a larger value, ±∞ and NaN alike; the two
-            // passes it replaces were a third of the loop's own time.)
-            const MAGNITUDE: u64 = 0x7fff_ffff_ffff_ffff;
-            let limit = 1e100f64.to_bits();
-            if z.iter()
-                .fold(false, |bad, v| bad | ((v.to_bits() & MAGNITUDE) > limit))
-            {
+            if diverged(&z) {
                 return Err(i + 1);
             }
         }
