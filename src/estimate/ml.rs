@@ -1550,6 +1550,33 @@ fn fit_stage(
     free_z0: bool,
     converged_below: f64,
 ) -> Result<usize, MlError> {
+    fit_stage_costed(
+        prob,
+        pt,
+        d,
+        len,
+        max_iterations,
+        active,
+        free_z0,
+        converged_below,
+    )
+    .map(|(iterations, _)| iterations)
+}
+
+/// [`fit_stage`], and the cost at the point it ends (what [`pt_cost_len`] would compute
+/// there, from the same simulation: one discretisation and one simulation fewer per
+/// screening descent).
+#[allow(clippy::too_many_arguments)]
+fn fit_stage_costed(
+    prob: &Problem,
+    pt: &mut Point,
+    d: Discretisation,
+    len: usize,
+    max_iterations: usize,
+    active: &[usize],
+    free_z0: bool,
+    converged_below: f64,
+) -> Result<(usize, f64), MlError> {
     let m = prob.m;
     let mut disc = prob.discretise(&pt.p, d)?;
     let mut base = Trace::default();
@@ -1573,7 +1600,7 @@ fn fit_stage(
         let (A, g, scale) = normal_equations(prob, pt, &base, &disc, len, &sigma, active, free_z0)?;
         let decrement = g.dot(&(pinv_sym(&A, 1e-14) * &g));
         if decrement < converged_below {
-            return Ok(iters);
+            return Ok((iters, l));
         }
         let mut accepted = false;
         for _try in 0..12 {
@@ -1650,7 +1677,7 @@ fn fit_stage(
             break;
         }
     }
-    Ok(iters)
+    Ok((iters, l))
 }
 
 /// Identify the connection parameters by maximum likelihood.
@@ -1781,7 +1808,7 @@ fn average_over_models(
         .collect();
     let smooth_screened = crate::par::map(&smooth_starts, |(v, p)| {
         let mut cand = (*p).clone();
-        fit_stage(
+        let (_, c) = fit_stage_costed(
             probs[1],
             &mut cand,
             v.d,
@@ -1792,7 +1819,6 @@ fn average_over_models(
             CONVERGED_DECREMENT,
         )
         .ok()?;
-        let c = pt_cost(probs[1], &cand, v.d).ok()?;
         Some((*v, c, cand))
     });
     let mut screened: Vec<(Variant, f64, Point)> = vec![(chosen, chosen_cost, sf.pt.clone())];
@@ -1819,7 +1845,7 @@ fn average_over_models(
             return Some((*v, *c, p.clone(), 0));
         }
         let mut cand = p.clone();
-        let it = fit_stage(
+        let (it, c) = fit_stage_costed(
             prob_of(v),
             &mut cand,
             v.d,
@@ -1830,7 +1856,6 @@ fn average_over_models(
             CONVERGED_DECREMENT,
         )
         .ok()?;
-        let c = pt_cost(prob_of(v), &cand, v.d).ok()?;
         Some((*v, c, cand, it))
     });
     let mut refitted: Vec<(Variant, f64, Point, usize)> = refitted.into_iter().flatten().collect();
@@ -2309,7 +2334,7 @@ fn fit_from_start(
     let others: Vec<Discretisation> = candidates.iter().copied().filter(|&d| d != exact).collect();
     let refits = crate::par::map(&others, |&d| {
         let mut cand = pt.clone();
-        fit_stage(
+        fit_stage_costed(
             prob,
             &mut cand,
             d,
@@ -2320,7 +2345,7 @@ fn fit_from_start(
             CONVERGED_DECREMENT,
         )
         .ok()
-        .map(|it| (it, pt_cost(prob, &cand, d), cand))
+        .map(|(it, c)| (it, Ok::<f64, MlError>(c), cand))
     });
     let mut screened = Vec::new();
     for (&d, refit) in others.iter().zip(refits) {
@@ -2464,7 +2489,7 @@ fn descend(
     free_initial_state: bool,
 ) -> Option<(f64, Point)> {
     let mut pt = start;
-    let its = fit_stage(
+    let (its, cost) = fit_stage_costed(
         prob,
         &mut pt,
         d,
@@ -2475,7 +2500,6 @@ fn descend(
         SCREEN_DECREMENT,
     )
     .ok()?;
-    let cost = pt_cost_len(prob, &pt, d, len).ok()?;
     if std::env::var_os("JOINTID_ML_DEBUG").is_some() {
         eprintln!("descent {d}, {len} samples: {its} iterations, cost {cost:.3}");
     }
