@@ -493,6 +493,67 @@ struct Discrete {
     Af: DMatrix<f64>,
 }
 
+/// One sample's map from `s` sub-steps of a first-order-hold map `(Φ, Γ₁, Γ₂)` (inputs
+/// linear across the sample): `Φ' = Φˢ`, `Γ₁' = Σⱼ Φʲ Γ₁`, `Γ₂' = Σₖ Φˢ⁻¹⁻ᵏ (k Γ₁ + Γ₂)/s`.
+/// A power of two by doubling: with `T₀ = Σ_{j<L} Φʲ` and `T₁ = Σ_{j<L} j Φʲ` acting on the
+/// input columns, `Γ₁' = T₀Γ₁` and `Γ₂' = (T₀Γ₂ + (s − 1)T₀Γ₁ − T₁Γ₁)/s` (j = s − 1 − k); a
+/// doubling `L → 2L` is `T₀ ← T₀ + ΦᴸT₀`, `T₁ ← T₁ + Φᴸ(T₁ + L T₀)`, `Φᴸ ← ΦᴸΦᴸ`. Why: the
+/// sub-step loop ([`compose_by_loop`], kept for other counts) made s products of the state
+/// matrix per discretisation, log₂ s here; at 64 sub-steps the loop was most of a
+/// likelihood evaluation's cost on short prefixes (the early choice of the discretisation).
+#[allow(non_snake_case)]
+fn compose_substeps(
+    Phi: &DMatrix<f64>,
+    g1: &DMatrix<f64>,
+    g2: &DMatrix<f64>,
+    substeps: usize,
+) -> (DMatrix<f64>, DMatrix<f64>, DMatrix<f64>) {
+    use crate::dense::product;
+    if !substeps.is_power_of_two() {
+        return compose_by_loop(Phi, g1, g2, substeps);
+    }
+    let mut P = Phi.clone();
+    let mut a1 = g1.clone();
+    let mut a2 = g2.clone();
+    let mut b1 = DMatrix::zeros(g1.nrows(), g1.ncols());
+    let mut l = 1usize;
+    while l < substeps {
+        let shifted_b1 = product(&P, &(&b1 + &a1 * (l as f64)));
+        b1 += shifted_b1;
+        let shifted_a1 = product(&P, &a1);
+        a1 += shifted_a1;
+        let shifted_a2 = product(&P, &a2);
+        a2 += shifted_a2;
+        P = product(&P, &P);
+        l *= 2;
+    }
+    let sf = substeps as f64;
+    let c2 = (&a2 + &a1 * (sf - 1.0) - &b1) * (1.0 / sf);
+    (P, a1, c2)
+}
+
+/// [`compose_substeps`] one sub-step after the other.
+#[allow(non_snake_case)]
+fn compose_by_loop(
+    Phi: &DMatrix<f64>,
+    g1: &DMatrix<f64>,
+    g2: &DMatrix<f64>,
+    substeps: usize,
+) -> (DMatrix<f64>, DMatrix<f64>, DMatrix<f64>) {
+    use crate::dense::product;
+    let ns = Phi.nrows();
+    let mut P = DMatrix::<f64>::identity(ns, ns);
+    let mut c1 = DMatrix::zeros(g1.nrows(), g1.ncols());
+    let mut c2 = DMatrix::zeros(g1.nrows(), g1.ncols());
+    let sf = substeps as f64;
+    for k in (0..substeps).rev() {
+        c1 += product(&P, g1);
+        c2 += product(&P, &(g1 * (k as f64 / sf) + g2 * (1.0 / sf)));
+        P = product(Phi, &P);
+    }
+    (P, c1, c2)
+}
+
 /// Everything fixed for one identification: model, data layout, parameter roles.
 pub struct Problem<'a> {
     setup: &'a Setup,
@@ -799,43 +860,8 @@ impl<'a> Problem<'a> {
         // map of the same first-order-hold form (inputs linear across the sample):
         // Φ' = Φˢ, Γ₁' = Σⱼ Φʲ Γ₁, Γ₂' = Σₖ Φˢ⁻¹⁻ᵏ (k Γ₁ + Γ₂)/s.
         let composed = substeps > 1 && !self.law_is_nonlinear();
-        let (Phi, g1, g2) = if composed && substeps.is_power_of_two() {
-            // By doubling (the candidates' sub-steps are powers of two): with `T₀ = Σ_{j<L}
-            // Φʲ` and `T₁ = Σ_{j<L} j Φʲ` acting on the input columns, `Γ₁' = T₀Γ₁` and
-            // `Γ₂' = (T₀Γ₂ + (s − 1)T₀Γ₁ − T₁Γ₁)/s` (j = s − 1 − k above); a doubling
-            // `L → 2L` is `T₀ ← T₀ + ΦᴸT₀`, `T₁ ← T₁ + Φᴸ(T₁ + L T₀)`, `Φᴸ ← ΦᴸΦᴸ`. Why: the
-            // sub-step loop made s products of the state matrix per discretisation, log₂ s
-            // here; at 64 sub-steps the loop was most of a likelihood evaluation's cost on
-            // short prefixes (the early choice of the discretisation).
-            let mut P = Phi;
-            let mut a1 = g1.clone();
-            let mut a2 = g2.clone();
-            let mut b1 = DMatrix::zeros(ns, nu);
-            let mut l = 1usize;
-            while l < substeps {
-                let shifted_b1 = product(&P, &(&b1 + &a1 * (l as f64)));
-                b1 += shifted_b1;
-                let shifted_a1 = product(&P, &a1);
-                a1 += shifted_a1;
-                let shifted_a2 = product(&P, &a2);
-                a2 += shifted_a2;
-                P = product(&P, &P);
-                l *= 2;
-            }
-            let sf = substeps as f64;
-            let c2 = (&a2 + &a1 * (sf - 1.0) - &b1) * (1.0 / sf);
-            (P, a1, c2)
-        } else if composed {
-            let mut P = DMatrix::<f64>::identity(ns, ns);
-            let mut c1 = DMatrix::zeros(ns, nu);
-            let mut c2 = DMatrix::zeros(ns, nu);
-            let sf = substeps as f64;
-            for k in (0..substeps).rev() {
-                c1 += product(&P, &g1);
-                c2 += product(&P, &(&g1 * (k as f64 / sf) + &g2 * (1.0 / sf)));
-                P = product(&Phi, &P);
-            }
-            (P, c1, c2)
+        let (Phi, g1, g2) = if composed {
+            compose_substeps(&Phi, &g1, &g2, substeps)
         } else {
             (Phi, g1, g2)
         };
@@ -1249,6 +1275,22 @@ fn jacobian(
     Ok(Jacobian { r, cols })
 }
 
+/// The stations' read-out rows `H` (m × 2n): the outputs' part that is linear in the state
+/// (a displacement or velocity reads one entry; an acceleration the row of `Au`).
+#[allow(non_snake_case)]
+fn readout_rows(prob: &Problem, disc: &Discrete) -> DMatrix<f64> {
+    let n = prob.n;
+    let mut H = DMatrix::zeros(prob.m, 2 * n);
+    for (k, st) in prob.model.stations.iter().enumerate() {
+        match st.quantity {
+            Quantity::Displacement => H[(k, st.dof)] = 1.0,
+            Quantity::Velocity => H[(k, n + st.dof)] = 1.0,
+            Quantity::Acceleration => H.row_mut(k).copy_from(&disc.Au.row(st.dof)),
+        }
+    }
+    H
+}
+
 /// The outputs' sensitivities to the initial state `z₀` when they are affine in it (a law
 /// linear in the state, one map per sample): the free response `y_i = H Φ^i z₀`, its
 /// read-out rows `H Φ^i` (m × 2n per sample) propagated instead of 2n simulations; one
@@ -1261,14 +1303,7 @@ fn free_response_columns(
 ) -> Vec<Vec<f64>> {
     let (m, n) = (prob.m, prob.n);
     let ns = 2 * n;
-    let mut W = DMatrix::zeros(m, ns);
-    for (k, st) in prob.model.stations.iter().enumerate() {
-        match st.quantity {
-            Quantity::Displacement => W[(k, st.dof)] = 1.0,
-            Quantity::Velocity => W[(k, n + st.dof)] = 1.0,
-            Quantity::Acceleration => W.row_mut(k).copy_from(&disc.Au.row(st.dof)),
-        }
-    }
+    let mut W = readout_rows(prob, disc);
     let mut zc: Vec<Vec<f64>> = vec![vec![0.0; len * m]; ns];
     let mut next = DMatrix::zeros(m, ns);
     for i in 0..len {
@@ -1328,14 +1363,9 @@ fn normal_equations(
     let ns = 2 * prob.n;
     let nc = na + ns;
     // Read-out rows over the noise levels: `D H`.
-    let mut H = DMatrix::zeros(m, ns);
-    for (k, st) in prob.model.stations.iter().enumerate() {
-        match st.quantity {
-            Quantity::Displacement => H[(k, st.dof)] = 1.0,
-            Quantity::Velocity => H[(k, prob.n + st.dof)] = 1.0,
-            Quantity::Acceleration => H.row_mut(k).copy_from(&disc.Au.row(st.dof)),
-        }
-        let w = 1.0 / sigma[k];
+    let mut H = readout_rows(prob, disc);
+    for (k, s) in sigma.iter().enumerate() {
+        let w = 1.0 / s;
         H.row_mut(k).iter_mut().for_each(|h| *h *= w);
     }
     // Backward pass: `λ = Σᵢ Φⁱᵀ Hᵀ D vᵢ` for every column `v` (the parameters', then the
@@ -1425,6 +1455,14 @@ fn normal_equations(
         }
         g[na + s] = lam[(s, na)];
     }
+    Ok(column_scaled(A, g))
+}
+
+/// The normal equations `(A, g)` with every column scaled to unit norm (`Aₐₐ = 1`; a column
+/// of zero or non-finite norm keeps scale 1), and the scales.
+#[allow(non_snake_case)]
+fn column_scaled(mut A: DMatrix<f64>, mut g: DVector<f64>) -> NormalEquations {
+    let nc = A.nrows();
     let scale: Vec<f64> = (0..nc)
         .map(|a| {
             let s = A[(a, a)].sqrt();
@@ -1437,40 +1475,30 @@ fn normal_equations(
         }
         g[a] /= scale[a];
     }
-    Ok((A, g, scale))
+    (A, g, scale)
 }
 
 /// Normal equations of the column-scaled Jacobian.
-fn normal(jac: &Jacobian) -> (DMatrix<f64>, DVector<f64>, Vec<f64>) {
+#[allow(non_snake_case)]
+fn normal(jac: &Jacobian) -> NormalEquations {
     let nc = jac.cols.len();
-    // `sums[a][b − a]`: `Σᵢ colₐ[i]·col_b[i]` for `b ≥ a` (`b = nc`: the residual).
-    let sums: Vec<Vec<f64>> = (0..nc)
-        .map(|a| {
-            let others: Vec<&[f64]> = jac.cols[a..]
-                .iter()
-                .map(Vec::as_slice)
-                .chain(std::iter::once(jac.r.as_slice()))
-                .collect();
-            dots(&jac.cols[a], &others)
-        })
-        .collect();
-    let scale: Vec<f64> = sums
-        .iter()
-        .map(|acc| {
-            let s = acc[0].sqrt();
-            if s > 0.0 && s.is_finite() { s } else { 1.0 }
-        })
-        .collect();
     let mut A = DMatrix::zeros(nc, nc);
     let mut g = DVector::zeros(nc);
     for a in 0..nc {
+        // `sums[b − a]`: `Σᵢ colₐ[i]·col_b[i]` for `b ≥ a` (`b = nc`: the residual).
+        let others: Vec<&[f64]> = jac.cols[a..]
+            .iter()
+            .map(Vec::as_slice)
+            .chain(std::iter::once(jac.r.as_slice()))
+            .collect();
+        let sums = dots(&jac.cols[a], &others);
         for b in a..nc {
-            A[(a, b)] = sums[a][b - a] / (scale[a] * scale[b]);
-            A[(b, a)] = A[(a, b)];
+            A[(a, b)] = sums[b - a];
+            A[(b, a)] = sums[b - a];
         }
-        g[a] = sums[a][nc - a] / scale[a];
+        g[a] = sums[nc - a];
     }
-    (A, g, scale)
+    column_scaled(A, g)
 }
 
 /// `Σᵢ x[i]·y[i]` for every `y` of `ys`, each the sequential chain from −0 that
@@ -2960,6 +2988,107 @@ mod tests {
             })
             .collect();
         Setup::from_toml(&text, "spring_uv").expect("setup")
+    }
+
+    /// The sub-steps composed by doubling are the sub-step loop's map to rounding (a
+    /// damped 4-state map, two inputs, 2 to 64 sub-steps).
+    #[test]
+    fn substeps_composed_by_doubling_are_the_loops_map() {
+        let phi = DMatrix::from_row_slice(
+            4,
+            4,
+            &[
+                0.98, 0.05, 0.0, 0.01, -0.05, 0.97, 0.02, 0.0, 0.0, -0.02, 0.99, 0.04, 0.01, 0.0,
+                -0.04, 0.985,
+            ],
+        );
+        let g1 = DMatrix::from_row_slice(4, 2, &[0.1, 0.0, 0.2, -0.1, 0.0, 0.3, -0.2, 0.05]);
+        let g2 = DMatrix::from_row_slice(4, 2, &[0.02, 0.01, -0.03, 0.0, 0.04, 0.02, 0.0, -0.01]);
+        for s in [2, 4, 8, 64] {
+            let by_doubling = compose_substeps(&phi, &g1, &g2, s);
+            let by_loop = compose_by_loop(&phi, &g1, &g2, s);
+            for (a, b) in [
+                (&by_doubling.0, &by_loop.0),
+                (&by_doubling.1, &by_loop.1),
+                (&by_doubling.2, &by_loop.2),
+            ] {
+                let err = (a - b).amax() / b.amax();
+                assert!(err < 1e-12, "{s} sub-steps: relative difference {err:e}");
+            }
+        }
+    }
+
+    /// The initial state's block of the normal equations by its Gramian and a backward
+    /// pass ([`normal_equations`]) is the normal equations of its 2n columns ([`normal`]
+    /// of [`jacobian`]) to rounding, on the exact map and on a composed Newmark ×8.
+    #[test]
+    fn the_initial_states_block_by_its_gramian_is_that_of_its_columns() {
+        use crate::simulate::{Noise, Scenario, SimulateOptions, simulate};
+        let setup = spring_uv();
+        let model = Model::for_identification(&setup).expect("model");
+        let n = 300;
+        let sim = simulate(
+            &setup,
+            &SimulateOptions {
+                scenario: Scenario::Random { rms: 1000.0 },
+                steps: n,
+                dt_s: setup.dt_s,
+                substeps: 8,
+                noise: Noise::Additive(0.1),
+                seed: 3,
+            },
+        )
+        .expect("simulate");
+        let data = TestData {
+            samples: (0..n as u64).collect(),
+            t_ns: (0..n as u64).map(|i| i * 100_000).collect(),
+            excitation: sim.excitation,
+            response: sim.response,
+        };
+        let prob = Problem::new(&setup, &model, &data).expect("problem");
+        // Off the truth, with an initial state, so the residual is not noise alone.
+        let mut z0 = DVector::zeros(2 * prob.n);
+        z0[3] = 1e-6;
+        z0[prob.n + 2] = -2e-4;
+        let pt = Point {
+            p: vec![2.9e5, 0.5],
+            z0,
+        };
+        for d in [
+            Discretisation {
+                scheme: Scheme::Exact,
+                substeps: 1,
+            },
+            Discretisation {
+                scheme: Scheme::Newmark,
+                substeps: 8,
+            },
+        ] {
+            let disc = prob.discretise(&pt.p, d).expect("discretise");
+            let mut base = Trace::default();
+            prob.simulate(&disc, &pt.p, &pt.z0, n, false, &mut base)
+                .expect("simulate");
+            let (_, ssr, cnt) = cost(&prob, &base, n);
+            let sigma: Vec<f64> = (0..prob.m)
+                .map(|k| (ssr[k] / cnt[k] as f64).sqrt())
+                .collect();
+            let (a1, g1, s1) =
+                normal_equations(&prob, &pt, &base, &disc, n, &sigma, &[0, 1], true).unwrap();
+            let jac = jacobian(&prob, &pt, &base, &disc, n, &sigma, &[0, 1], true, false).unwrap();
+            let (a2, g2, s2) = normal(&jac);
+            assert_eq!(a1.shape(), a2.shape());
+            let err_a = (&a1 - &a2).amax();
+            let err_g = (&g1 - &g2).amax() / g2.amax();
+            let err_s = s1
+                .iter()
+                .zip(&s2)
+                .map(|(x, y)| (x - y).abs() / y)
+                .fold(0.0, f64::max);
+            assert!(
+                err_a < 1e-9 && err_g < 1e-9 && err_s < 1e-9,
+                "{d}: A {err_a:e}, g {err_g:e}, scales {err_s:e}"
+            );
+        }
     }
 
     /// `Problem::passive` lets a descent's step skip the eigenvalues only where they cannot

@@ -397,6 +397,33 @@ pub(crate) fn moment_matched(exc: &[Vec<f64>]) -> Vec<Vec<f64>> {
 mod tests {
     use super::*;
 
+    /// The squaring proof never calls a radius above the limit within it, and agrees with the
+    /// Schur form on either side of it — a rotation scaled just inside and just outside, and a
+    /// non-normal matrix whose powers grow a thousandfold before they decay.
+    #[test]
+    fn a_radius_within_its_limit_is_proved_so_and_one_beyond_is_not() {
+        let rotation = |r: f64| {
+            let (c, s) = (0.3f64.cos(), 0.3f64.sin());
+            DMatrix::from_row_slice(2, 2, &[r * c, -r * s, r * s, r * c])
+        };
+        let limit = 1.0 + 10f64.ln() / 2000.0;
+        for (a, beyond) in [
+            (rotation(0.999), false),
+            (rotation(1.0), false),
+            (rotation(1.0005), false),
+            (rotation(1.002), true),
+            (DMatrix::from_row_slice(2, 2, &[0.9, 1e3, 0.0, 0.9]), false),
+            (DMatrix::from_row_slice(2, 2, &[1.01, 1e3, 0.0, 0.5]), true),
+            (
+                DMatrix::from_row_slice(2, 2, &[f64::NAN, 0.0, 0.0, 0.5]),
+                true,
+            ),
+        ] {
+            assert_eq!(spectral_radius_exceeds(&a, limit, 2000.0), beyond, "{a}");
+            assert_eq!(spectral_radius(&a) > limit, beyond, "{a}");
+        }
+    }
+
     /// Forward and backward points per parameter in order; a friction level whose backward
     /// point would be negative gets the forward one only, and one at a positive value both.
     #[test]
