@@ -1585,6 +1585,15 @@ const CONVERGED_DECREMENT: f64 = 0.02;
 /// The whole-record fits that make the answer keep [`CONVERGED_DECREMENT`].
 const SCREEN_DECREMENT: f64 = 1.0;
 
+/// Where along a step the parabola through the cost at its start (`at_start`), the slope
+/// there (`slope`, per unit of the step) and the cost at its end (`at_end`) has its minimum,
+/// as a fraction of the step; `None` when the start does not descend or the parabola is not
+/// convex (no minimum ahead to take).
+fn parabola_minimum(at_start: f64, slope: f64, at_end: f64) -> Option<f64> {
+    let curvature = at_end - at_start - slope;
+    (slope < 0.0 && curvature > 0.0).then(|| -slope / (2.0 * curvature))
+}
+
 /// Fit over the first `len` samples from `pt`, Levenberg–Marquardt on the concentrated
 /// likelihood, until the Gauss–Newton decrement is below `converged_below` (χ², see
 /// [`CONVERGED_DECREMENT`]) or `max_iterations`. Returns the iterations used.
@@ -1726,18 +1735,15 @@ fn fit_stage_costed(
                 // Gauss–Newton overshoot by about twice, and the descent zig-zagged across the
                 // valley — measured on the benchmark record's grid finalists, 31 and 32
                 // iterations with the stiffness alternating between 75.4 and 76.3 kN/m.
-                let slope = -g.dot(&step);
-                let curvature = lc - l - slope;
-                if slope < 0.0 && curvature > 0.0 {
-                    let t = -slope / (2.0 * curvature);
-                    if t < 0.7 {
-                        let shorter = along(t);
-                        if let Some(e) = evaluate(&shorter)
-                            && e.2 < taken.3
-                            && !unstable(&shorter, &e.0)
-                        {
-                            taken = (shorter, e.0, e.1, e.2, e.3, e.4);
-                        }
+                if let Some(t) = parabola_minimum(l, -g.dot(&step), lc)
+                    && t < 0.7
+                {
+                    let shorter = along(t);
+                    if let Some(e) = evaluate(&shorter)
+                        && e.2 < taken.3
+                        && !unstable(&shorter, &e.0)
+                    {
+                        taken = (shorter, e.0, e.1, e.2, e.3, e.4);
                     }
                 }
                 let (cand, cd, tr, lc, ssrc, cntc) = taken;
@@ -3038,6 +3044,33 @@ mod tests {
             })
             .collect();
         Setup::from_toml(&text, "spring_uv").expect("setup")
+    }
+
+    /// The parabola through a quadratic's value at 0, its slope there and its value at 1 is
+    /// the quadratic: its minimum is found exactly, at every position, for every convex
+    /// quadratic that descends at 0; none for a concave one or one that rises at 0.
+    #[test]
+    fn the_parabola_of_a_quadratic_puts_its_minimum_where_the_quadratic_has_it() {
+        for &(a, b, c) in &[
+            (10.0, -4.0, 1.0),
+            (-3.0, -1.0, 8.0),
+            (4332.8, -9.3, 4.7),
+            (0.0, -1e-6, 1e-3),
+            (1e5, -2e3, 1.5e3),
+        ] {
+            let q = |t: f64| a + b * t + c * t * t;
+            let t = parabola_minimum(q(0.0), b, q(1.0)).expect("a convex descent");
+            let exact = -b / (2.0 * c);
+            assert!(
+                (t - exact).abs() <= 1e-9 * exact.abs().max(1.0),
+                "{t} vs {exact}"
+            );
+            assert!(q(t) <= q(0.0) && q(t) <= q(1.0));
+        }
+        // Concave along the step, or not descending at its start: no minimum ahead.
+        assert_eq!(parabola_minimum(1.0, -1.0, -0.5), None);
+        assert_eq!(parabola_minimum(1.0, 0.5, 3.0), None);
+        assert_eq!(parabola_minimum(1.0, -1.0, f64::NAN), None);
     }
 
     /// The sub-steps composed by doubling are the sub-step loop's map to rounding (a
