@@ -17,8 +17,12 @@ fn main() -> anyhow::Result<()> {
     let at: Vec<f64> = get("--at", "")
         .split(',')
         .filter(|s| !s.is_empty())
-        .map(str::parse)
-        .collect::<Result<_, _>>()?;
+        .map(|v| {
+            v.trim()
+                .parse()
+                .map_err(|e| anyhow::anyhow!("--at: `{v}` is not a number ({e})"))
+        })
+        .collect::<anyhow::Result<_>>()?;
     let sim = simulate(
         &setup,
         &SimulateOptions {

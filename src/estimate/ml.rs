@@ -1554,15 +1554,16 @@ fn pinv_sym(A: &DMatrix<f64>, rel: f64) -> DMatrix<f64> {
 /// convergence test. Why Cholesky first: `A` is the scaled normal matrix `J'J`, positive
 /// definite whenever the data determine every active parameter; there `A⁻¹ = A⁺` and the
 /// factor costs a tenth of the eigen-decomposition [`pinv_sym`] needs. Only when the factor
-/// shows a condition beyond `1e14` (its smallest pivot squared against its largest: the
-/// directions [`pinv_sym`] would drop at `1e-14`) or fails does the pseudo-inverse decide.
+/// shows a condition beyond `1e12` or fails does the pseudo-inverse decide: the largest
+/// pivot squared over the smallest only estimates the condition, so the cut is kept 100×
+/// inside the `1e14` at which [`pinv_sym`] drops directions.
 fn gn_decrement(A: &DMatrix<f64>, g: &DVector<f64>) -> f64 {
     if let Some(ch) = A.clone().cholesky() {
         let d = ch.l_dirty().diagonal();
         let (lo, hi) = d.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), &x| {
             (lo.min(x.abs()), hi.max(x.abs()))
         });
-        if lo * lo > 1e-14 * hi * hi * 1e2 {
+        if lo * lo > 1e-12 * hi * hi {
             return g.dot(&ch.solve(g));
         }
     }
@@ -3044,6 +3045,39 @@ mod tests {
             })
             .collect();
         Setup::from_toml(&text, "spring_uv").expect("setup")
+    }
+
+    /// The Gauss–Newton decrement by the Cholesky factor is the pseudo-inverse's on a well
+    /// conditioned normal matrix, and a singular one (a parameter the data leave free, its
+    /// column zero) falls back to the pseudo-inverse, which ignores that direction.
+    #[test]
+    fn the_decrement_by_cholesky_is_the_pseudo_inverses_and_a_singular_matrix_falls_back() {
+        let j = DMatrix::from_row_slice(
+            4,
+            3,
+            &[1.0, 0.2, 0.0, 0.3, 1.0, 0.1, 0.0, 0.4, 1.0, 0.5, 0.0, 0.2],
+        );
+        let a = j.transpose() * &j;
+        let g = DVector::from_vec(vec![0.7, -1.1, 0.4]);
+        let by_pinv = g.dot(&(pinv_sym(&a, 1e-14) * &g));
+        let by_chol = gn_decrement(&a, &g);
+        assert!(
+            (by_chol - by_pinv).abs() <= 1e-12 * by_pinv,
+            "{by_chol} vs {by_pinv}"
+        );
+        let mut singular = a.clone();
+        singular.row_mut(2).fill(0.0);
+        singular.column_mut(2).fill(0.0);
+        let expected = {
+            let top = singular.view((0, 0), (2, 2)).into_owned();
+            let g2 = DVector::from_vec(vec![0.7, -1.1]);
+            g2.dot(&(top.try_inverse().expect("invertible") * &g2))
+        };
+        let got = gn_decrement(&singular, &g);
+        assert!(
+            (got - expected).abs() <= 1e-9 * expected,
+            "{got} vs {expected}"
+        );
     }
 
     /// The parabola through a quadratic's value at 0, its slope there and its value at 1 is
