@@ -2,7 +2,8 @@
 //! maximum-likelihood estimator on a law linear in the state (`u`, `v`), 2,000 and 20,000
 //! samples of 8-sub-step data at 1 % noise, the default Kalman pipeline on the shipped
 //! spring setup for comparison, and the default pipeline on the shipped friction setup at
-//! 2,000 and 100,000 samples (the two sizes issue 13 sets targets for: < 100 ms and < 5 s).
+//! 2,000 and 100,000 samples (the two sizes issue 13 sets targets for: < 100 ms and < 5 s),
+//! and a Coulomb law on the friction setup (the free-run output error's path).
 //! `cargo bench --bench identify`; figures go to BENCHMARKS.md.
 use std::path::Path;
 
@@ -12,10 +13,17 @@ use jointid::setup::{EstimatorKind, Setup};
 use jointid::simulate::{Noise, Scenario, SimulateOptions, simulate};
 
 fn setup_with_basis(basis: Option<(&str, &str)>) -> Setup {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("recordings/two-beam-spring.toml");
+    shipped_with_basis("two-beam-spring.toml", basis)
+}
+
+/// A shipped setup with its connection's basis and truth replaced (`None`: as it is).
+fn shipped_with_basis(name: &str, basis: Option<(&str, &str)>) -> Setup {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("recordings")
+        .join(name);
     let text = std::fs::read_to_string(&path).expect("setup");
     let Some((basis, truth)) = basis else {
-        return Setup::from_toml(&text, "spring").expect("setup");
+        return Setup::from_toml(&text, name).expect("setup");
     };
     let n = basis.split(',').count();
     let text: String = text
@@ -33,16 +41,12 @@ fn setup_with_basis(basis: Option<(&str, &str)>) -> Setup {
             }
         })
         .collect();
-    Setup::from_toml(&text, "spring u,v").expect("setup")
+    Setup::from_toml(&text, &format!("{name} with basis [{basis}]")).expect("setup")
 }
 
 /// A shipped setup as it is.
 fn shipped(name: &str) -> Setup {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("recordings")
-        .join(name);
-    let text = std::fs::read_to_string(&path).expect("setup");
-    Setup::from_toml(&text, name).expect("setup")
+    shipped_with_basis(name, None)
 }
 
 fn data(setup: &Setup, n: usize) -> TestData {
@@ -102,6 +106,18 @@ fn bench_identify(c: &mut Criterion) {
             })
         });
     }
+    // Coulomb friction (`sign(v), u` on the friction setup): the residual-force stage is
+    // refused and the free-run output error from a scan does the work — the slowest of the
+    // default pipelines (issue 13's "most Kalman records").
+    let coulomb = shipped_with_basis(
+        "two-beam-friction.toml",
+        Some(("\"sign(v)\", \"u\"", "3000.0, 3.0e5")),
+    );
+    let d = data_from(&coulomb, 2_000, 20_000.0, 8);
+    let opts = IdentifyOptions::from_setup(&coulomb);
+    group.bench_function("kalman_coulomb_2000_samples", |b| {
+        b.iter(|| identify(&coulomb, &d, &opts, None, &mut |_| {}, &mut |_, _| {}).expect("kalman"))
+    });
     group.finish();
 }
 

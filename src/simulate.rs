@@ -198,7 +198,13 @@ impl Work {
     /// δ, δ̇, δ̈ at the connections with the forces `f`: `d₀ − (G f) βh²`, `v₀ − (G f) γh`,
     /// `a₀ − G f` (the product formed first, as the allocating version did).
     fn deformations(&mut self, G: &DMatrix<f64>, bh2: f64, gh: f64) {
-        crate::dense::gemv(&mut self.gf, G, &self.f, crate::dense::Op::Set);
+        if self.f.len() == 1 {
+            // One connection (the common case): the `1 × 1` product `gemv` makes, without
+            // its dispatch (a third of the force solve's time at 64 sub-steps).
+            self.gf[0] = G[(0, 0)] * self.f[0];
+        } else {
+            crate::dense::gemv(&mut self.gf, G, &self.f, crate::dense::Op::Set);
+        }
         for c in 0..self.gf.len() {
             self.d[c] = self.d0[c] - self.gf[c] * bh2;
             self.dv[c] = self.v0[c] - self.gf[c] * gh;
@@ -401,7 +407,12 @@ impl TruthSystem {
                 let w = &mut self.work;
                 // Size of the terms that are summed: round-off in the residual is relative
                 // to it, not to the (possibly much smaller) net force.
-                let mut mag = 1.0 + crate::dense::amax(w.f.as_slice());
+                let mut mag = 1.0
+                    + if q == 1 {
+                        w.f[0].abs()
+                    } else {
+                        crate::dense::amax(w.f.as_slice())
+                    };
                 w.deformations(&self.G, bh2, gh);
                 for c in 0..q {
                     let (dc, dvc, dac) = (self.work.d[c], self.work.dv[c], self.work.da[c]);
@@ -761,10 +772,11 @@ fn rest_state(model: &Model, sys: &TruthSystem, first: &[f64]) -> Result<State, 
 /// whole cost, and sub-step by sub-step it took 2–22 s per Coulomb identification at 2,000
 /// samples. It had kept to the sub-step path since 2026-11-27, when on one accelerometer-only
 /// Coulomb record the stepper's round-off sent the descent to another valley of a rough
-/// cost. Measured over 50 fresh seeds × 9 rows of the Coulomb setup (`sign(v), u`, 900
-/// estimates): the same coverage in every row, 536 of 900 estimates identical, none moved
-/// more than 1.7 standard errors (6 over 0.5), and 3.5–4× less time (ACCURACY.md, the
-/// forty-ninth session). A free run's answer that round-off moves is one the cost cannot
+/// cost. Measured over 50 seeds × 9 rows of the Coulomb setup (`sign(v), u`, 900
+/// estimates, with the composed force history as an `axpy`): the same coverage in every
+/// row to one estimate, 534 estimates identical, none moved more than 0.66 standard errors
+/// (4 over 0.5); on one machine, the same records one after the other, 2.6–2.7× less time
+/// (1-DOF friction 6.6×; ACCURACY.md and BENCHMARKS.md, the forty-ninth session). A free run's answer that round-off moves is one the cost cannot
 /// tell from its neighbours; its stated error has to say so, not the arithmetic's order.
 fn response_stepped(
     setup: &Setup,
