@@ -786,23 +786,15 @@ fn response_stepped(
     dt_s: f64,
     substeps: usize,
 ) -> Result<Vec<Vec<f64>>, SimulateError> {
-    let h = dt_s / substeps as f64;
-    let mut sys = TruthSystem::with_params(setup, model, h, params)?;
-    let mut s = rest_state(model, &sys, &excitation[0])?;
-    let record = |s: &State| station_outputs(model, s);
-    let mut out = Vec::with_capacity(excitation.len());
-    out.push(record(&s));
     let mut stepper = SampleStepper::new(setup, model, params, dt_s, substeps, excitation.len())?;
-    for i in 1..excitation.len() {
-        stepper
-            .step(&mut sys, &mut s, &excitation[i - 1], &excitation[i])
-            .ok_or(SimulateError::Diverged(i))?;
-        if !s.is_finite() {
-            return Err(SimulateError::Diverged(i));
-        }
-        out.push(record(&s));
-    }
-    Ok(out)
+    free_run(
+        setup,
+        model,
+        params,
+        excitation,
+        dt_s / substeps as f64,
+        |sys, s, pa, pb| stepper.step(sys, s, pa, pb),
+    )
 }
 
 /// [`response_to_excitation`] sub-step by sub-step with the implicit force solve: the
@@ -816,26 +808,38 @@ fn response_substeps(
     dt_s: f64,
     substeps: usize,
 ) -> Result<Vec<Vec<f64>>, SimulateError> {
-    let h = dt_s / substeps as f64;
+    let mut pt = DVector::zeros(model.Lp.ncols());
+    free_run(
+        setup,
+        model,
+        params,
+        excitation,
+        dt_s / substeps as f64,
+        |sys, s, pa, pb| sys.sample_substeps(s, pa, pb, substeps, &mut pt),
+    )
+}
+
+/// The station outputs of the law `params` from rest, each sample `pa → pb` stepped by
+/// `step` (`None`: a force solve failed) on the system of sub-step `h`.
+fn free_run(
+    setup: &Setup,
+    model: &Model,
+    params: &[f64],
+    excitation: &[Vec<f64>],
+    h: f64,
+    mut step: impl FnMut(&mut TruthSystem, &mut State, &[f64], &[f64]) -> Option<()>,
+) -> Result<Vec<Vec<f64>>, SimulateError> {
     let mut sys = TruthSystem::with_params(setup, model, h, params)?;
     let mut s = rest_state(model, &sys, &excitation[0])?;
-    let record = |s: &State| station_outputs(model, s);
     let mut out = Vec::with_capacity(excitation.len());
-    out.push(record(&s));
-    let mut pt = DVector::zeros(model.Lp.ncols());
+    out.push(station_outputs(model, &s));
     for i in 1..excitation.len() {
-        sys.sample_substeps(
-            &mut s,
-            &excitation[i - 1],
-            &excitation[i],
-            substeps,
-            &mut pt,
-        )
-        .ok_or(SimulateError::Diverged(i))?;
+        step(&mut sys, &mut s, &excitation[i - 1], &excitation[i])
+            .ok_or(SimulateError::Diverged(i))?;
         if !s.is_finite() {
             return Err(SimulateError::Diverged(i));
         }
-        out.push(record(&s));
+        out.push(station_outputs(model, &s));
     }
     Ok(out)
 }
