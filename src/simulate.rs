@@ -772,12 +772,11 @@ fn rest_state(model: &Model, sys: &TruthSystem, first: &[f64]) -> Result<State, 
 /// whole cost, and sub-step by sub-step it took 2–22 s per Coulomb identification at 2,000
 /// samples. It had kept to the sub-step path since 2026-11-27, when on one accelerometer-only
 /// Coulomb record the stepper's round-off sent the descent to another valley of a rough
-/// cost. Measured over 50 seeds × 9 rows of the Coulomb setup (`sign(v), u`, 900
-/// estimates, with the composed force history as an `axpy`): the same coverage in every
-/// row to one estimate, 534 estimates identical, none moved more than 0.66 standard errors
-/// (4 over 0.5); on one machine, the same records one after the other, 2.6–2.7× less time
-/// (1-DOF friction 6.6×; ACCURACY.md and BENCHMARKS.md, the forty-ninth session). A free run's answer that round-off moves is one the cost cannot
-/// tell from its neighbours; its stated error has to say so, not the arithmetic's order.
+/// cost. Over 900 Coulomb estimates (50 seeds × 9 rows) the coverage stayed the same in
+/// every row to one estimate and none moved more than 0.66 errors, at 2.6–2.7× less time
+/// (1-DOF friction 6.5×, gap 1.7–2×; ACCURACY.md, the forty-ninth session). A free run's
+/// answer that round-off moves is one the cost cannot tell from its neighbours; its stated
+/// error has to say so, not the arithmetic's order.
 fn response_stepped(
     setup: &Setup,
     model: &Model,
@@ -848,7 +847,7 @@ fn free_run(
 /// driven by the recorded excitation from rest, its state `x = (u; u̇; ü)` corrected after
 /// every sample by a fixed observer gain: `x ← x + K (y_i − ŷ_{i|i−1})` (`gain` is `3n × m`,
 /// rows in `(u; u̇; ü)` order, columns the station channels). With `K = 0` this is
-/// [`response_to_excitation`] (implicit path). `initial`: offsets `(u; u̇; ü)` from rest of
+/// [`response_to_excitation`]. `initial`: offsets `(u; u̇; ü)` from rest of
 /// the state the record starts from (`None`: at rest).
 ///
 /// Why: the prediction-error predictor of [`crate::estimate::prediction_error`]. The whole
@@ -1190,7 +1189,8 @@ impl LinearSampleMap {
 /// are built with `O(n³ log L)` products; larger models step sub-step by sub-step.
 const MAX_COMPOSED_DOFS: usize = 300;
 
-/// How the observer's predictions ([`predictions_with_observer`]) step a sample: a friction
+/// How the observer's predictions ([`predictions_with_observer`]) and the free run of a law
+/// that is not linear ([`response_to_excitation`]) step a sample: a friction
 /// that slips one way through it by one composed map ([`SlipSampleMap`]); otherwise the
 /// force solve at every sub-step, two or more sub-steps composed around it
 /// ([`ComposedSubsteps`], built when first needed). The same sub-steps either way, up to
@@ -1594,12 +1594,14 @@ struct ComposedSubsteps {
     substeps: usize,
     q: usize,
     /// `Lc₃ᵀ Tʲ`, j = 1…L, stacked by quantity (row `c L + j − 1`: δ₀, δ̇₀, δ̈₀ of each
-    /// connection `c` at sub-step `j`, contiguous over the sub-steps), side by side with the excitation's part of the same for the sample's
+    /// connection `c` at sub-step `j`, contiguous over the sub-steps), side by side with the
+    /// excitation's part of the same for the sample's
     /// start `p_{i−1}` and end `p_i` (linearly interpolated over the sub-steps): a map of
     /// the first `3n + 2 ne` entries of [`Self::input`].
     free_map: DMatrix<f64>,
     /// `Lc₃ᵀ Tᵏ G_f`, k = 1…L−1: entry `(c, m)` of each as one vector over k
-    /// (`impulse_by_lag[c q + m][k − 1]`), so each force is spread over the later sub-steps by one contiguous `axpy`.
+    /// (`impulse_by_lag[c q + m][k − 1]`), so each force is spread over the later sub-steps
+    /// by one contiguous `axpy`.
     impulse_by_lag: Vec<Vec<f64>>,
     /// The end state from [`Self::input`]: `T^L`, the excitation's part and
     /// `T^{L−j} G_f`, j = 1…L (`3n × qL`), side by side.
@@ -1609,7 +1611,8 @@ struct ComposedSubsteps {
     input: DVector<f64>,
     /// Excitation channels `ne`.
     ne: usize,
-    /// Work: the free predictions (row `c L + j`: quantity `c` at sub-step `j`), each
+    /// Work: the free predictions (row `c L + j`: quantity `c` at the 0-based sub-step `j`,
+    /// the 1-based `j + 1` of [`Self::free_map`]), each
     /// sub-step's forces added to the later sub-steps' as they are solved.
     free: DVector<f64>,
     next: DVector<f64>,
@@ -1951,8 +1954,11 @@ mod tests {
     /// The free run through [`SampleStepper`] ([`response_to_excitation`]: slip maps and
     /// composed sub-steps) equals the sub-step-by-sub-step free run over a whole record, not
     /// only sample by sample: a Coulomb joint (`sign(v), u`, 3 kN, 3e5 N/m) on the shipped
-    /// two-beam model that sticks and slips, random excitation of 20 kN RMS, 8 and 64
-    /// sub-steps, 400 samples. Without an observer the two runs' round-off is never reset;
+    /// two-beam model, random excitation of 20 kN RMS, 8 and 64 sub-steps, 400 samples, in
+    /// which the joint's velocity keeps its sign through some samples (the slip map's) and
+    /// reverses in others (the composed sub-steps'; measured 193 and 188 of 399 by the map,
+    /// asserted 40–359). Without an
+    /// observer the two runs' round-off is never reset;
     /// the structure's damping keeps it at round-off (measured: 2–4e-12 of each channel's RMS
     /// at 8 sub-steps, 0.7–1.3e-11 at 64; asserted 1e-9).
     #[test]
@@ -1972,6 +1978,11 @@ mod tests {
         let params = [3000.0, 3.0e5];
         let exc = random_excitation(model.Lp.ncols(), 400, 2.0e4, 11);
         for substeps in [8, 64] {
+            let (by_map, _) = slip_map_against_substeps(&setup, &params, substeps, &exc);
+            assert!(
+                (40..360).contains(&by_map),
+                "{substeps} sub-steps: {by_map} of 399 samples by the slip map"
+            );
             let fast = response_to_excitation(&setup, &model, &params, &exc, setup.dt_s, substeps)
                 .unwrap();
             let slow =

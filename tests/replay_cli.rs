@@ -734,7 +734,7 @@ fn shipped_friction_setup_on_eight_substep_data() {
 /// the errors came from a secant of ±1 error, which saw single jumps of the cost. The polish
 /// and the errors now use secants wide against the error
 /// (`estimate::prediction_error::{POLISH_SECANT, ERROR_SECANTS}`), and the parametric
-/// bootstrap runs on such records by itself.
+/// bootstrap runs on such records by itself (asserted).
 ///
 /// Asserted over ten seeds (41–50), not one: on this rough cost the last digits of the
 /// arithmetic move single answers (the forty-ninth session's round-off change moved seed
@@ -753,6 +753,8 @@ fn own_discretisation_friction_at_ten_percent_noise_states_honest_errors() {
         let v = replay_json(&[rec.to_str().unwrap()]);
         let friction = v["parameters"][0]["std_error"].as_f64().unwrap();
         assert!(friction > 20.0, "seed {seed}: friction ± {friction} N");
+        let boot = &v["output_error"]["prediction_error"]["bootstrap"];
+        assert_eq!(boot["used"].as_u64(), Some(10), "seed {seed}: {boot}");
         replays.push((seed, v));
     }
     assert_covered(&replays, 0.8, 6.0);
@@ -1464,8 +1466,9 @@ fn the_stated_errors_match_the_spread_of_the_bootstrap() {
 /// friction setup instead of 20,000; 8-sub-step data, 1 % noise): the joint sticks often,
 /// the innovations are far from linear in the parameters over their errors (the two
 /// secants' sandwiches differ up to 14×) and the sandwich errors are too small, so the
-/// parametric bootstrap runs by itself; `--bootstrap 0` gives the sandwich's answer back
-/// with a note that says what such errors covered (ACCURACY.md, twentieth session).
+/// parametric bootstrap runs by itself (asserted: ten replicates and a note that says it
+/// was automatic, whichever of its triggers fired); `--bootstrap 0` gives the sandwich's
+/// answer back with a note that says so (ACCURACY.md, twentieth session).
 ///
 /// Asserted over ten seeds (801–810), not one: a `sign(u)` law amplifies the last digits,
 /// so single answers move with the arithmetic's round-off (until the forty-ninth session
@@ -1512,11 +1515,15 @@ fn a_weak_excitation_against_the_friction_is_bootstrapped() {
 }
 
 /// The share of the replays' parameters whose stated 95 % interval (±1.96 errors) holds the
-/// truth, and the largest |value − truth| / error with its seed and basis.
+/// truth, and the largest |value − truth| / error with its seed and basis. Every replay must
+/// state parameters (an empty list would make any share pass).
 fn coverage(replays: &[(String, serde_json::Value)]) -> (f64, (f64, String)) {
     let (mut inside, mut total, mut worst) = (0, 0, (0.0, String::new()));
+    assert!(!replays.is_empty(), "no replays");
     for (seed, v) in replays {
-        for p in v["parameters"].as_array().unwrap() {
+        let params = v["parameters"].as_array().unwrap();
+        assert!(!params.is_empty(), "seed {seed}: no parameters");
+        for p in params {
             let (value, truth, se) = (
                 p["value"].as_f64().unwrap(),
                 p["truth"].as_f64().unwrap(),

@@ -1127,9 +1127,10 @@ const BOOTSTRAP_SEED: u64 = 0x0062_6f6f_7473;
 /// noise model. Their mean shift from `r`'s values is the procedure's bias there and their
 /// spread its error, whatever the sandwich assumes.
 ///
-/// The free run from a start state is the observer's run with a zero gain: it steps through
-/// the composed sample maps, whose round-off differs from the sub-step path's; the
-/// replicates are synthetic records, so that difference is only a different draw.
+/// The free run from a start state is the observer's run with a zero gain, the one from
+/// rest [`crate::simulate::response_to_excitation`]: both step through the composed sample
+/// maps, whose round-off differs from `jointid simulate`'s sub-step path; the replicates are
+/// synthetic records, so that difference is only a different draw.
 ///
 /// Why: on sine tests with a `sign(u)` law the sandwich errors cover 58 % of the truths (16
 /// seeds, 8-sub-step data, 1 % noise) and `sign(u)` is −2.0 errors off on average: the
