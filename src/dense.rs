@@ -52,6 +52,17 @@ pub fn gemv_slices(y: &mut [f64], a: &DMatrix<f64>, x: &[f64], op: Op) {
         y.len() == rows && x.len() == cols,
         "gemv: dimensions mismatch"
     );
+    if rows == 1 && cols == 1 {
+        // One connection's force solve (a `1 × 1` product per Newton iteration, millions per
+        // identification): the one product and add, without the kernel's dispatch.
+        let p = a[(0, 0)] * x[0];
+        y[0] = match op {
+            Op::Set => p,
+            Op::Add => p + y[0],
+            Op::Subtract => y[0] - p,
+        };
+        return;
+    }
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx") {
         // SAFETY: the CPU has AVX (checked above); the slices have the lengths the kernel
@@ -121,8 +132,11 @@ pub fn all_finite(v: &[f64]) -> bool {
 /// entry replace a NaN, so with a NaN present the answer depends on the order: then the fold
 /// is run as nalgebra runs it.
 pub fn amax(v: &[f64]) -> f64 {
-    if v.is_empty() {
-        return 0.0;
+    match v {
+        [] => return 0.0,
+        // One connection's force solve: `larger(0, |x|)` is `|x|` (a NaN's too).
+        [x] => return x.abs(),
+        _ => {}
     }
     let mut lanes = [0.0f64; 4];
     let mut nan = false;

@@ -198,13 +198,7 @@ impl Work {
     /// δ, δ̇, δ̈ at the connections with the forces `f`: `d₀ − (G f) βh²`, `v₀ − (G f) γh`,
     /// `a₀ − G f` (the product formed first, as the allocating version did).
     fn deformations(&mut self, G: &DMatrix<f64>, bh2: f64, gh: f64) {
-        if self.f.len() == 1 {
-            // One connection (the common case): the `1 × 1` product `gemv` makes, without
-            // its dispatch (a third of the force solve's time at 64 sub-steps).
-            self.gf[0] = G[(0, 0)] * self.f[0];
-        } else {
-            crate::dense::gemv(&mut self.gf, G, &self.f, crate::dense::Op::Set);
-        }
+        crate::dense::gemv(&mut self.gf, G, &self.f, crate::dense::Op::Set);
         for c in 0..self.gf.len() {
             self.d[c] = self.d0[c] - self.gf[c] * bh2;
             self.dv[c] = self.v0[c] - self.gf[c] * gh;
@@ -407,12 +401,7 @@ impl TruthSystem {
                 let w = &mut self.work;
                 // Size of the terms that are summed: round-off in the residual is relative
                 // to it, not to the (possibly much smaller) net force.
-                let mut mag = 1.0
-                    + if q == 1 {
-                        w.f[0].abs()
-                    } else {
-                        crate::dense::amax(w.f.as_slice())
-                    };
+                let mut mag = 1.0 + crate::dense::amax(w.f.as_slice());
                 w.deformations(&self.G, bh2, gh);
                 for c in 0..q {
                     let (dc, dvc, dac) = (self.work.d[c], self.work.dv[c], self.work.da[c]);
