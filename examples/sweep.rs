@@ -203,7 +203,17 @@ fn main() -> anyhow::Result<()> {
                                                 .iter()
                                                 .sum::<usize>())
                                         ),
-                                        (None, Some(b)) => format!(" bound {b:.3e}"),
+                                        // …and the likelihood-ratio width over the
+                                        // stated 95 % interval (> 1: widened to it).
+                                        (None, Some(b)) => format!(
+                                            " bound {b:.3e}{}",
+                                            id.output_error
+                                                .as_ref()
+                                                .and_then(|o| o.likelihood_ratio_widths.as_ref())
+                                                .and_then(|w| w.get(k))
+                                                .map(|w| format!(" lr {w:.2}"))
+                                                .unwrap_or_default()
+                                        ),
                                         _ => String::new(),
                                     };
                                     println!(

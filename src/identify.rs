@@ -44,6 +44,7 @@ use crate::setup::{Basis, EstimatorKind, Quantity, Setup, Weighting};
 use crate::track::{Track, TrackOptions, Tracker};
 
 mod bootstrap;
+mod likelihood;
 mod pem;
 mod scan;
 
@@ -2311,6 +2312,7 @@ fn finish_with_output_error(
                     scan: None,
                     prediction_error: Some(r.report),
                     secant_disagreement: None,
+                    likelihood_ratio_widths: None,
                     bootstrap: None,
                     smooth_excitation_gain: None,
                 });

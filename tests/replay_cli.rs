@@ -650,54 +650,118 @@ fn one_dof_continuation_refines_every_doubling_and_takes_the_finest_equal_level(
     }
 }
 
-/// `--bootstrap N` on a free-run output-error answer (the 1-DOF friction law at rest): N
-/// records simulated from the answer, each identified again by the whole procedure; the
-/// stated errors are at least their spread as a Student's t interval, the answer is not
-/// moved, and the report and a note say so (before, `--bootstrap` said it was not run).
-/// Measured (6 replicates): `const` floored from ± 0.00191 to ± 0.00237 N, `v` and `sign(v)`
-/// kept (their spread 0.35–0.68× their errors).
+/// The 1-DOF setup on 8-sub-step data at 1 % noise, twenty seeds (8911–8930): the free
+/// run's cost is a flat, rough valley where the curvature's errors were too narrow — 80 %
+/// of the parameters covered, the worst 7.4 errors off (`v`, seed 8912), before the
+/// likelihood-ratio check (`identify::likelihood`). Each error is now at least where the
+/// cost along its profile line rises by 3.84, over 1.96, and the descent restarts from a
+/// significantly lower cost met there: measured 95 % covered, worst 4.7 (60 seeds: 81 → 97 %,
+/// worst 7.4 → 4.6). Asserted: at least 88 % and none past 6 errors; the check's widths are
+/// in the report, and at least one error was widened by it.
 #[test]
-fn bootstrap_asked_for_on_a_free_run_answer_floors_its_errors() {
+fn one_dof_friction_errors_hold_where_the_free_run_cost_is_flat() {
     let dir = tempfile::tempdir().unwrap();
     let setup = repo("recordings/one-dof-friction.toml");
     let extra = ["--steps", "3000", "--amplitude", "50", "--substeps", "8"];
-    let rec = simulate_with_noise(dir.path(), &setup, "7813", "additive:0.1", &extra);
-    let rec = rec.to_str().unwrap();
-    let plain = replay_json(&[rec, "--bootstrap", "0"]);
-    let v = replay_json(&[rec, "--bootstrap", "6"]);
-    assert_within(&v, "7813", 3.0);
-    let boot = &v["output_error"]["bootstrap"];
-    let used = boot["used"].as_u64().unwrap() as usize;
-    assert!(used >= 5 && boot["failure"].is_null(), "{boot}");
-    // Student's t with used − 1 degrees of freedom over the normal's 97.5 % quantile (the
-    // tables; the code takes them up to 4 degrees and its expansion, within 0.1 %, above).
-    let t_ratio = [2.776, 2.571][used - 5] / 1.959964;
-    let mut floored = 0;
-    for (j, p) in v["parameters"].as_array().unwrap().iter().enumerate() {
-        let (value, se) = (
-            p["value"].as_f64().unwrap(),
-            p["std_error"].as_f64().unwrap(),
-        );
-        let floor = boot["spread"][j].as_f64().unwrap() * t_ratio;
-        let before = &plain["parameters"][j];
-        let se_before = before["std_error"].as_f64().unwrap();
-        assert!(floor > 0.0, "{boot}");
-        assert!(
-            se >= floor * 0.995 && se >= se_before,
-            "{p} {before} {boot}"
-        );
-        assert_eq!(value, before["value"].as_f64().unwrap(), "{p} {before}");
-        if se > se_before && (se / floor - 1.0).abs() < 0.005 {
-            floored += 1;
-        }
+    let mut replays = Vec::new();
+    let mut widened = 0;
+    for seed in 8911..=8930 {
+        let seed = seed.to_string();
+        let rec = simulate_with_noise(dir.path(), &setup, &seed, "additive:0.01", &extra);
+        let v = replay_json(&[rec.to_str().unwrap()]);
+        let widths = v["output_error"]["likelihood_ratio_widths"]
+            .as_array()
+            .unwrap_or_else(|| {
+                panic!(
+                    "seed {seed}: no likelihood-ratio widths: {}",
+                    v["output_error"]
+                )
+            })
+            .iter()
+            .map(|w| w.as_f64().unwrap())
+            .collect::<Vec<_>>();
+        assert_eq!(widths.len(), 3, "seed {seed}");
+        assert!(widths.iter().all(|&w| w >= 1.0), "seed {seed}: {widths:?}");
+        widened += usize::from(widths.iter().any(|&w| w > 1.0));
+        replays.push((seed, v));
     }
-    assert!(floored >= 1, "{} {boot}", v["parameters"]);
     assert!(
-        says(&v, "parametric bootstrap of the free run"),
-        "{}",
-        v["notes"]
+        widened >= 1,
+        "no error widened by the likelihood-ratio check"
     );
-    assert!(!says(&v, "`--bootstrap` not run"), "{}", v["notes"]);
+    assert_covered(&replays, 0.88, 6.0);
+}
+
+/// `--bootstrap N` on free-run output-error answers (the 1-DOF friction law at rest, and
+/// Coulomb `sign(v), u`): N records simulated from the answer, each identified again by the
+/// whole procedure; the stated errors are at least their spread as a Student's t interval,
+/// the answer is not moved, and the report and a note say so (before, `--bootstrap` said it
+/// was not run). Measured (6 replicates): on the 1-DOF record (seed 7813, 8-sub-step data,
+/// 10 % noise) `const` was floored from ± 0.00191 to ± 0.00237 N until the likelihood-ratio
+/// check (fiftieth session) widened it to ± 0.00254 itself, so none is floored there now;
+/// on the Coulomb record (seed 9047, own discretisation, 100 % noise, 5.2 errors off with
+/// the sandwich alone) the friction's spread is 1.24× its error and is floored.
+#[test]
+fn bootstrap_asked_for_on_a_free_run_answer_floors_its_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let one_dof = repo("recordings/one-dof-friction.toml");
+    let coulomb = coulomb_setup(dir.path());
+    let extra = ["--steps", "3000", "--amplitude", "50", "--substeps", "8"];
+    let cases = [
+        (
+            simulate_with_noise(dir.path(), &one_dof, "7813", "additive:0.1", &extra),
+            None,
+        ),
+        (
+            simulate_with_noise(dir.path(), &coulomb, "9047", "additive:1.0", &[]),
+            Some(coulomb.to_str().unwrap()),
+        ),
+    ];
+    let mut floored = 0;
+    for (rec, setup) in &cases {
+        let rec = rec.to_str().unwrap();
+        let with = |n: &'static str| {
+            let mut args = vec![rec, "--bootstrap", n];
+            if let Some(s) = setup {
+                args.extend(["--setup", s]);
+            }
+            replay_json(&args)
+        };
+        let (plain, v) = (with("0"), with("6"));
+        assert_within(&v, rec, 3.0);
+        let boot = &v["output_error"]["bootstrap"];
+        let used = boot["used"].as_u64().unwrap() as usize;
+        assert!(used >= 5 && boot["failure"].is_null(), "{rec}: {boot}");
+        // Student's t with used − 1 degrees of freedom over the normal's 97.5 % quantile
+        // (the tables; the code takes them up to 4 degrees and its expansion, within 0.1 %,
+        // above).
+        let t_ratio = [2.776, 2.571][used - 5] / 1.959964;
+        for (j, p) in v["parameters"].as_array().unwrap().iter().enumerate() {
+            let (value, se) = (
+                p["value"].as_f64().unwrap(),
+                p["std_error"].as_f64().unwrap(),
+            );
+            let floor = boot["spread"][j].as_f64().unwrap() * t_ratio;
+            let before = &plain["parameters"][j];
+            let se_before = before["std_error"].as_f64().unwrap();
+            assert!(floor > 0.0, "{rec}: {boot}");
+            assert!(
+                se >= floor * 0.995 && se >= se_before,
+                "{rec}: {p} {before} {boot}"
+            );
+            assert_eq!(value, before["value"].as_f64().unwrap(), "{p} {before}");
+            if se > se_before && (se / floor - 1.0).abs() < 0.005 {
+                floored += 1;
+            }
+        }
+        assert!(
+            says(&v, "parametric bootstrap of the free run"),
+            "{rec}: {}",
+            v["notes"]
+        );
+        assert!(!says(&v, "`--bootstrap` not run"), "{rec}: {}", v["notes"]);
+    }
+    assert!(floored >= 1, "no error floored by the bootstrap");
 }
 
 /// The shipped friction setup (model at 1 sub-step) replaying continuous-like data (8

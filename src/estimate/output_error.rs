@@ -72,6 +72,11 @@ pub struct OutputErrorReport {
     /// with a `sign` term): 1 when the cost is linear in the parameters over their errors.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub secant_disagreement: Option<f64>,
+    /// The likelihood-ratio check of the final errors (`identify::likelihood`), per
+    /// parameter: the distance at which the cost along its profile line rises by 3.84, over
+    /// the stated 95 % half-width (1: the stated error held; > 1: widened to it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub likelihood_ratio_widths: Option<Vec<f64>>,
     /// The free run's parametric bootstrap, when asked for (`--bootstrap N`;
     /// `identify::bootstrap`).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -425,6 +430,7 @@ pub fn refine(
             rough: false,
             prediction_error: None,
             secant_disagreement: None,
+            likelihood_ratio_widths: None,
             bootstrap: None,
             smooth_excitation_gain: None,
         },
