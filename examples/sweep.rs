@@ -210,7 +210,7 @@ fn main() -> anyhow::Result<()> {
                                             id.output_error
                                                 .as_ref()
                                                 .and_then(|o| o.likelihood_ratio_widths.as_ref())
-                                                .and_then(|w| w.get(k))
+                                                .and_then(|w| w.get(k).copied().flatten())
                                                 .map(|w| format!(" lr {w:.2}"))
                                                 .unwrap_or_default()
                                         ),

@@ -654,10 +654,10 @@ fn one_dof_continuation_refines_every_doubling_and_takes_the_finest_equal_level(
 /// run's cost is a flat, rough valley where the curvature's errors were too narrow — 80 %
 /// of the parameters covered, the worst 7.4 errors off (`v`, seed 8912), before the
 /// likelihood-ratio check (`identify::likelihood`). Each error is now at least where the
-/// cost along its profile line rises by 3.84, over 1.96, and the descent restarts from a
-/// significantly lower cost met there: measured 95 % covered, worst 4.7 (60 seeds: 81 → 97 %,
-/// worst 7.4 → 4.6). Asserted: at least 88 % and none past 6 errors; the check's widths are
-/// in the report, and at least one error was widened by it.
+/// cost along its profile line rises by 3.84, over 1.96: measured 95 % covered, worst 4.7
+/// (seeds 8901–8960: 81 → 96 %, worst 7.4 → 4.7). Asserted: at least 88 % and none past 6
+/// errors; every parameter checked, its width in the report, and at least one error
+/// widened by the check.
 #[test]
 fn one_dof_friction_errors_hold_where_the_free_run_cost_is_flat() {
     let dir = tempfile::tempdir().unwrap();
@@ -678,11 +678,14 @@ fn one_dof_friction_errors_hold_where_the_free_run_cost_is_flat() {
                 )
             })
             .iter()
-            .map(|w| w.as_f64().unwrap())
+            .map(|w| {
+                w.as_f64()
+                    .unwrap_or_else(|| panic!("seed {seed}: a parameter not checked: {w}"))
+            })
             .collect::<Vec<_>>();
         assert_eq!(widths.len(), 3, "seed {seed}");
         assert!(widths.iter().all(|&w| w >= 1.0), "seed {seed}: {widths:?}");
-        widened += usize::from(widths.iter().any(|&w| w > 1.0));
+        widened += usize::from(widths.iter().any(|&w| w > 1.01));
         replays.push((seed, v));
     }
     assert!(

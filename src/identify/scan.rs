@@ -1279,55 +1279,81 @@ pub(super) fn restate_final_errors(
     }
     // 3. The likelihood ratio: each error at least the distance at which the cost rises
     //    by 3.84 along its profile line, over 1.96 (`likelihood`).
-    let checked = fisher.and_then(|F| {
-        let errors: Vec<f64> = last.parameters.iter().map(|p| p.std_error).collect();
-        super::likelihood::intervals(setup, model, data, (&values, &errors), &F, &refit, substeps)
-    });
-    let mut likelihood_words = String::new();
-    if let Some(intervals) = &checked {
-        let mut widths = Vec::with_capacity(intervals.len());
-        let mut widened = Vec::new();
-        let mut undetermined = Vec::new();
-        let mut lowest = 0.0f64;
-        for (p, i) in last.parameters.iter_mut().zip(intervals) {
-            let e = i.error(p.std_error);
-            widths.push(e / p.std_error);
-            lowest = lowest.min(i.lowest());
-            if !i.reached() {
-                undetermined.push(p.basis.clone());
-            }
-            if e > p.std_error * (1.0 + 1e-9) {
-                widened.push(format!("`{}` {:.2}×", p.basis, e / p.std_error));
-                p.std_error = e;
-                p.ci95 = [p.value - 1.96 * p.std_error, p.value + 1.96 * p.std_error];
-            }
-        }
-        if let Some(report) = result.output_error.as_mut() {
-            report.likelihood_ratio_widths = Some(widths);
-        }
-        likelihood_words = if widened.is_empty() {
-            "; each held by the likelihood ratio (the cost along its profile line rises by 3.84, χ²₁ 95 %, within the stated 95 % interval)".to_string()
-        } else {
-            format!(
-                "; widened where the cost along a parameter's profile line rises by 3.84 (χ²₁ 95 %) only beyond the stated 95 % interval, to that distance over 1.96 ({}): the cost is flatter there than its curvature at the answer",
-                widened.join(", ")
+    let checked = match fisher {
+        Some(F) => {
+            let errors: Vec<f64> = last.parameters.iter().map(|p| p.std_error).collect();
+            super::likelihood::intervals(
+                setup,
+                model,
+                data,
+                (&values, &errors),
+                &F,
+                &refit,
+                substeps,
             )
-        };
-        if !undetermined.is_empty() {
-            result.notes.push(format!(
-                "the output-error cost does not rise by 3.84 within {:.0} standard errors along the profile line of {}: the record does not determine {} (the errors are set to that distance and are lower limits)",
-                super::likelihood::FARTHEST,
-                undetermined.iter().map(|b| format!("`{b}`")).collect::<Vec<_>>().join(", "),
-                if undetermined.len() == 1 { "it" } else { "them" }
-            ));
         }
-        if lowest < -1.0 {
-            result.notes.push(format!(
-                "the likelihood-ratio check met a cost lower than the answer's by Δχ² = {:.1} along a profile line (at the restated noise levels, which the answer was not fitted with): its errors are widened to reach past it",
-                -lowest
-            ));
+        None => Err("the sensitivities gave no Fisher information".to_string()),
+    };
+    let likelihood_words = match &checked {
+        Err(why) => format!("; not checked by the likelihood ratio ({why})"),
+        Ok(intervals) => {
+            let mut widths = Vec::with_capacity(intervals.len());
+            let (mut widened, mut undetermined, mut unchecked, mut lower) =
+                (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+            for (p, i) in last.parameters.iter_mut().zip(intervals) {
+                let Some(i) = i else {
+                    unchecked.push(format!("`{}`", p.basis));
+                    widths.push(None);
+                    continue;
+                };
+                let e = i.error(p.std_error);
+                widths.push(Some(e / p.std_error));
+                if i.lowest() < -1.0 {
+                    lower.push(format!("`{}` (Δχ² = {:.1})", p.basis, -i.lowest()));
+                }
+                if !i.reached() {
+                    undetermined.push(format!("`{}`", p.basis));
+                }
+                if e > p.std_error * super::likelihood::WIDEN_TOLERANCE {
+                    widened.push(format!("`{}` {:.2}×", p.basis, e / p.std_error));
+                    p.std_error = e;
+                    p.ci95 = [p.value - 1.96 * p.std_error, p.value + 1.96 * p.std_error];
+                }
+            }
+            if let Some(report) = result.output_error.as_mut() {
+                report.likelihood_ratio_widths = Some(widths);
+            }
+            if !undetermined.is_empty() {
+                result.notes.push(format!(
+                    "the output-error cost does not rise by 3.84 within {:.1} of the former standard errors along the profile line of {}: the record does not determine {}; the 95 % interval is set to that distance, a lower limit",
+                    super::likelihood::FARTHEST,
+                    undetermined.join(", "),
+                    if undetermined.len() == 1 { "it" } else { "them" }
+                ));
+            }
+            if !lower.is_empty() {
+                result.notes.push(format!(
+                    "the likelihood-ratio check met a cost lower than the answer's on the profile line of {} (at the restated noise levels, which the answer was not fitted with): those errors are widened to reach past it",
+                    lower.join(", ")
+                ));
+            }
+            let mut words = if widened.is_empty() {
+                "; each held by the likelihood ratio (the cost along its profile line rises by 3.84, χ²₁ 95 %, within the stated 95 % interval)".to_string()
+            } else {
+                format!(
+                    "; widened where the cost along a parameter's profile line rises by 3.84 (χ²₁ 95 %) only beyond the stated 95 % interval, to that distance over 1.96 ({}): the cost is flatter there than its curvature at the answer",
+                    widened.join(", ")
+                )
+            };
+            if !unchecked.is_empty() {
+                words += &format!(
+                    "; {} not checked (no finite error or information)",
+                    unchecked.join(", ")
+                );
+            }
+            words
         }
-    }
+    };
     let restated = estimated.iter().any(|&e| e);
     if restated {
         for (sensor, (s0, s1)) in setup.sensors.iter().zip(sigma.iter().zip(&refit)) {
