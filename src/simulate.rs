@@ -1584,8 +1584,8 @@ struct ComposedSubsteps {
     q: usize,
     /// `Lc₃ᵀ Tʲ`, j = 1…L, stacked by quantity (row `c L + j − 1`: δ₀, δ̇₀, δ̈₀ of each
     /// connection `c` at sub-step `j`, contiguous over the sub-steps), side by side with the
-    /// excitation's part of the same for the sample's
-    /// start `p_{i−1}` and end `p_i` (linearly interpolated over the sub-steps): a map of
+    /// excitation's part of the same for the sample's start `p_{i−1}` and end `p_i`
+    /// (linearly interpolated over the sub-steps): a map of
     /// the first `3n + 2 ne` entries of [`Self::input`].
     free_map: DMatrix<f64>,
     /// `Lc₃ᵀ Tᵏ G_f`, k = 1…L−1: entry `(c, m)` of each as one vector over k
@@ -1601,8 +1601,8 @@ struct ComposedSubsteps {
     /// Excitation channels `ne`.
     ne: usize,
     /// Work: the free predictions (row `c L + j`: quantity `c` at the 0-based sub-step `j`,
-    /// the 1-based `j + 1` of [`Self::free_map`]), each
-    /// sub-step's forces added to the later sub-steps' as they are solved.
+    /// the 1-based `j + 1` of [`Self::free_map`]), each sub-step's forces added to the later
+    /// sub-steps' as they are solved.
     free: DVector<f64>,
     next: DVector<f64>,
 }
@@ -1946,10 +1946,9 @@ mod tests {
     /// two-beam model, random excitation of 20 kN RMS, 8 and 64 sub-steps, 400 samples, in
     /// which the joint's velocity keeps its sign through some samples (the slip map's) and
     /// reverses in others (the composed sub-steps'; measured 193 and 188 of 399 by the map,
-    /// asserted 40–359). Without an
-    /// observer the two runs' round-off is never reset;
-    /// the structure's damping keeps it at round-off (measured: 2–4e-12 of each channel's RMS
-    /// at 8 sub-steps, 0.7–1.3e-11 at 64; asserted 1e-9).
+    /// asserted 40–359). Without an observer the two runs' round-off is never reset; the
+    /// structure's damping keeps it at round-off (measured: 2–4e-12 of each channel's RMS at
+    /// 8 sub-steps, 0.7–1.3e-11 at 64; asserted 1e-9).
     #[test]
     fn the_stepped_free_run_equals_the_substeps_over_a_whole_record() {
         let toml = shipped_friction_toml()

@@ -20,7 +20,8 @@
 //! Cost: each point is a profile fit of one free run at the start and, per Gauss–Newton
 //! step, `p − 1` secant runs and one or two trial runs — `2p` points (one at each end of
 //! each interval) when the stated errors hold, each end that does not a few more points.
-//! For the 1-DOF law (`p = 3`) that is 24–60 free runs when every error holds.
+//! A point takes `p + 1` to `1 + 3(p + 1)` runs: for the 1-DOF law (`p = 3`) 24–78 free runs
+//! when every error holds.
 
 use nalgebra::{DMatrix, DVector};
 
