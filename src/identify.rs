@@ -140,6 +140,15 @@ pub enum IdentifyError {
         parameter: String,
         moved: f64,
     },
+    /// The residual-force stage's answer for a friction law is a model the free run cannot
+    /// simulate from rest: the data reject it outright, so the output-error stage has no
+    /// start (measured: Coulomb `sign(v), u` with the sensors' `noise_std` given, 8-sub-step
+    /// data at 1 % noise; the passes' random-walk force tuned to 2.9e5 N and their fit gave
+    /// `u` = −1.78e6 N/m, reported with a 9 % error).
+    #[error(
+        "the residual-force stage's answer ({answer}) cannot be simulated: the free run from rest with it failed ({why}); it is no start for the output-error stage"
+    )]
+    StartRejected { answer: String, why: String },
     /// A law with friction whose residual-force stage was refused, and whose scan-started
     /// output-error fallback did not give an accepted answer either.
     #[error(
@@ -441,6 +450,11 @@ pub struct Identification {
     /// shown: [`identify`] then runs again with the record treated as in motion.
     #[serde(skip)]
     pub motion_in_record: Option<MotionInRecord>,
+    /// Set when the free-run output-error refinement could not run from the passes'
+    /// answer (its simulation failed: the model those values give diverges or cannot be
+    /// stepped): the reason. [`identify`] then takes the start from a scan.
+    #[serde(skip)]
+    pub refinement_not_run: Option<String>,
 }
 
 /// A start in motion seen in the innovations of the prediction error's observer (run
@@ -472,6 +486,7 @@ impl Identification {
             session: None,
             initial_state: None,
             motion_in_record: None,
+            refinement_not_run: None,
         }
     }
 
@@ -1613,6 +1628,34 @@ fn identify_once(
         result.initial_state = opts.initial_state.clone();
         finish_with_output_error(setup, &model, data, &opts, &sigma, &mut result);
     }
+    // A friction law whose refinement could not start because the passes' answer cannot
+    // even be simulated: that answer is rejected by the data, and the scan gives the start
+    // instead, as when the residual-force stage is refused.
+    if by_output_error
+        && opts.output_error
+        && opts.estimator == EstimatorKind::Kalman
+        && opts.initial_state.is_none()
+        && result.motion_in_record.is_none()
+        && result.output_error.is_none()
+        && has_sign_basis(setup)
+        && let Some(e) = start_rejected(&result)
+    {
+        // The stage's own notes of that failure: the refusal below says it.
+        result.notes.retain(|n| {
+            !(n.starts_with("output-error refinement not run") || n.starts_with("Cramér–Rao bound"))
+        });
+        return identify_from_scan(
+            setup,
+            &model,
+            data,
+            &opts,
+            truth,
+            &sigma,
+            &estimated,
+            result,
+            ScanReason::ResidualForceRefused(e),
+        );
+    }
     if has_sign_basis(setup)
         && let Some(sub) = result.output_error.as_ref().map(|r| r.substeps)
     {
@@ -1999,6 +2042,22 @@ fn start_scales(values: &[f64], errors: &[f64]) -> Vec<f64> {
             if s.is_finite() && s > 0.0 { s } else { 1e-6 }
         })
         .collect()
+}
+
+/// [`IdentifyError::StartRejected`] when the free-run refinement could not run from the
+/// last pass's answer (`Identification::refinement_not_run`), `None` otherwise.
+fn start_rejected(result: &Identification) -> Option<IdentifyError> {
+    let why = result.refinement_not_run.clone()?;
+    let last = result.passes.last()?;
+    Some(IdentifyError::StartRejected {
+        answer: last
+            .parameters
+            .iter()
+            .map(|p| format!("{}.{} = {:.4e}", p.connection, p.basis, p.value))
+            .collect::<Vec<_>>()
+            .join(", "),
+        why,
+    })
 }
 
 /// After the passes: the Cramér–Rao bound of every parameter and, when enabled, the
@@ -2531,9 +2590,12 @@ fn finish_with_output_error(
                 }
                 result.output_error = Some(r.report);
             }
-            Err(e) => result
-                .notes
-                .push(format!("output-error refinement not run: {e}")),
+            Err(e) => {
+                result
+                    .notes
+                    .push(format!("output-error refinement not run: {e}"));
+                result.refinement_not_run = Some(e.to_string());
+            }
         }
     }
     // Without the refinement (`--estimator paper`, `--no-refine`) nothing else compares the
