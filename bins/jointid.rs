@@ -159,8 +159,9 @@ enum Command {
         /// analytic errors depend on the secant they are made from (an excitation weak
         /// against the friction), or the law has a friction on the rate (`sign(v)`) — where
         /// they do not hold — else none; 0 switches it off (README, Accuracy). An answer of
-        /// the free-run output error (e.g. Coulomb or a gap at rest) is bootstrapped only
-        /// when asked: each replicate is identified again by the whole procedure, and the
+        /// the free-run output error (e.g. Coulomb or a gap at rest) is bootstrapped when
+        /// asked, and by itself for a friction law when the setup gives sensors'
+        /// `noise_std`: each replicate is identified again by the whole procedure, and the
         /// errors are at least their spread (the answer is not corrected).
         #[arg(long, value_name = "N")]
         bootstrap: Option<usize>,

@@ -304,8 +304,8 @@ pub struct IdentifyOptions {
     /// itself or was found smooth between samples, the sandwich depends on its secant
     /// ([`pem::BOOTSTRAP_SECANT_DISAGREEMENT`]) or the law has a friction on the rate, and
     /// none otherwise; see `identify::pem::bootstrap_occasion` and `identify::pem::bootstrap`)
-    /// and of a free-run output-error answer (only when asked: `None` runs none there; see
-    /// `identify::bootstrap`).
+    /// and of a free-run output-error answer (`None` runs none there unless a friction law's
+    /// sensors have their `noise_std` given; see `identify::bootstrap`).
     pub bootstrap: Option<usize>,
     /// Options of the maximum-likelihood estimator (`EstimatorKind::Ml`).
     pub ml: crate::estimate::ml::MlOptions,
