@@ -147,7 +147,7 @@ pub(super) fn free_run_bootstrap(
 /// errors; the truth's cost below the answer's on every record probed), 8-sub-step data
 /// 56 % (55); with the bootstrap 92 % (6.0). The same records with the levels estimated
 /// cover 96–100 %, and the Coulomb setup with its levels given 100 % without it, so it is
-/// not run for every free-run answer (a Coulomb record takes ~3 s instead of ~0.8).
+/// not run for every free-run answer (a Coulomb record takes 4–7 s instead of about 0.5).
 pub(super) fn given_levels_sharpen_a_friction(setup: &Setup) -> bool {
     super::scan::has_sign_basis(setup) && setup.sensors.iter().any(|s| s.noise_std.is_some())
 }
