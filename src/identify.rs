@@ -142,9 +142,9 @@ pub enum IdentifyError {
     },
     /// The residual-force stage's answer for a friction law is a model the free run cannot
     /// simulate from rest: the data reject it outright, so the output-error stage has no
-    /// start (measured: Coulomb `sign(v), u` with the sensors' `noise_std` given, 8-sub-step
-    /// data at 1 % noise; the passes' random-walk force tuned to 2.9e5 N and their fit gave
-    /// `u` = −1.78e6 N/m, reported with a 9 % error).
+    /// start (measured: Coulomb `sign(v), u` with the sensors' true `noise_std` given,
+    /// 8-sub-step data at 1 % noise, seed 9317: the passes gave `u` = −1.8e5 N/m, whose
+    /// effective mass matrix is singular, and that answer was reported 7.9 errors off).
     #[error(
         "the residual-force stage's answer ({answer}) cannot be simulated: the free run from rest with it failed ({why}); it is no start for the output-error stage"
     )]
@@ -452,7 +452,8 @@ pub struct Identification {
     pub motion_in_record: Option<MotionInRecord>,
     /// Set when the free-run output-error refinement could not run from the passes'
     /// answer (its simulation failed: the model those values give diverges or cannot be
-    /// stepped): the reason. [`identify`] then takes the start from a scan.
+    /// stepped): the reason. For a friction law at rest [`identify`] then takes the start
+    /// from a scan (no report was made, so none is replaced).
     #[serde(skip)]
     pub refinement_not_run: Option<String>,
 }
@@ -1632,11 +1633,9 @@ fn identify_once(
     // even be simulated: that answer is rejected by the data, and the scan gives the start
     // instead, as when the residual-force stage is refused.
     if by_output_error
-        && opts.output_error
         && opts.estimator == EstimatorKind::Kalman
         && opts.initial_state.is_none()
         && result.motion_in_record.is_none()
-        && result.output_error.is_none()
         && has_sign_basis(setup)
         && let Some(e) = start_rejected(&result)
     {
