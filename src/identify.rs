@@ -3235,50 +3235,43 @@ fn raise_substeps(
         // A finer level than the one taken was tried and did not help: the sub-steps have
         // converged.
         let finer_tried = taken + 1 < ladder.len();
-        match ladder[taken].1.is_none() {
-            // The answer's own level. (The descents count among the refinement's
-            // iterations.)
-            true => {
+        // One doubling coarser than the level taken, when it was fitted.
+        let previous = taken.checked_sub(1).and_then(|j| {
+            (ladder[j].0 * 2 == ladder[taken].0).then(|| {
+                ladder[j]
+                    .1
+                    .as_ref()
+                    .map_or(&r.values, |t| &t.values)
+                    .clone()
+            })
+        });
+        let (level, fit) = ladder.swap_remove(taken);
+        // The descents of the other levels count among the refinement's iterations.
+        let others: usize = ladder
+            .iter()
+            .filter_map(|t| t.1.as_ref())
+            .map(|t| t.report.iterations)
+            .sum();
+        match fit {
+            // The answer's own level.
+            None => {
                 settled = settled || finer_tried;
-                r.report.iterations += ladder
-                    .iter()
-                    .filter_map(|t| t.1.as_ref())
-                    .map(|t| t.report.iterations)
-                    .sum::<usize>();
+                r.report.iterations += others;
             }
-            false => {
+            Some(mut fit) => {
                 settled = finer_tried;
-                let others: usize = ladder
-                    .iter()
-                    .enumerate()
-                    .filter(|(j, _)| *j != taken)
-                    .filter_map(|(_, t)| t.1.as_ref())
-                    .map(|t| t.report.iterations)
-                    .sum();
-                // One doubling coarser than the level taken, when it was fitted.
-                let previous = taken.checked_sub(1).and_then(|j| {
-                    (ladder[j].0 * 2 == ladder[taken].0).then(|| {
-                        ladder[j]
-                            .1
-                            .as_ref()
-                            .map_or(&r.values, |t| &t.values)
-                            .clone()
-                    })
-                });
-                let (level, finer) = ladder.swap_remove(taken);
-                let mut finer = finer.expect("the answer's own level is the `None` entry");
                 // The report describes the whole refinement (its start, its iterations, the
                 // scan's minima); the errors are the new level's own (the model taken).
-                take_over_start(&mut finer, &r);
-                finer.report.iterations += others;
-                finer.report.note = format!(
+                take_over_start(&mut fit, &r);
+                fit.report.iterations += others;
+                fit.report.note = format!(
                     "{}; {} by continuation to {level} model sub-steps: {}",
                     first_note,
                     moved_word(level, sub),
-                    finer.report.note
+                    fit.report.note
                 );
-                finer.report.accepted = true;
-                r = finer;
+                fit.report.accepted = true;
+                r = fit;
                 coarser = previous;
                 sub = level;
             }
