@@ -1222,13 +1222,19 @@ impl SampleStepper {
 
     /// One sample `pa → pb` of `sys` from `s`; `None` when a force solve fails.
     fn step(&mut self, sys: &mut TruthSystem, s: &mut State, pa: &[f64], pb: &[f64]) -> Option<()> {
-        if let Some(map) = self.slip.as_mut()
-            && map.try_sample(s, pa, pb)
-        {
-            for (ci, sign) in map.slips() {
-                sys.status[ci] = Status::Slip(sign);
+        if let Some(map) = self.slip.as_mut() {
+            match map.try_sample(s, pa, pb) {
+                Ok(()) => {
+                    for (ci, sign) in map.slips() {
+                        sys.status[ci] = Status::Slip(sign);
+                    }
+                    return Some(());
+                }
+                Err(cleared) if map.windows.is_some() => {
+                    return map.sample_by_windows(sys, s, pa, pb, cleared, &mut self.pt);
+                }
+                Err(_) => {}
             }
-            return Some(());
         }
         if self.compose && self.substeps >= 2 {
             let map = self
@@ -1266,8 +1272,9 @@ struct SlipSampleMap {
     step: DMatrix<f64>,
     /// `δ_j` (or `δ̇_j`) of each friction at the end of sub-step `j = 1…L`, stacked
     /// (`r` rows per sub-step), from the same inputs: the blocks of the start state,
-    /// `p_{i−1}`, `p_i` and `b` side by side.
-    check: DMatrix<f64>,
+    /// `p_{i−1}`, `p_i` and `b` side by side. Stored transposed (a row per column), so the
+    /// test reads the rows in order and stops at the first it cannot clear.
+    check_rows: DMatrix<f64>,
     /// Per check row: the absolute row sums of the four blocks (`Σ|terms| ≤ Σ rowsum·‖·‖∞`,
     /// the scale of its round-off).
     row_sums: Vec<[f64; 4]>,
@@ -1286,9 +1293,204 @@ struct SlipSampleMap {
     /// Excitation channels `ne`.
     ne: usize,
     /// Work vectors.
-    checks: DVector<f64>,
     next: DVector<f64>,
     signs: Vec<f64>,
+    /// The maps of windows of sub-steps inside a sample, for the samples the whole-sample
+    /// test refuses (`None` with one sub-step, no active friction or a large model).
+    windows: Option<SlipWindows>,
+    substeps: usize,
+}
+
+/// Most model DOFs for which the slip map keeps its window maps ([`SlipWindows`]: about
+/// `log₂ L + 1` matrices of `3n × 3n`).
+const MAX_WINDOW_DOFS: usize = 100;
+
+/// Most memory the window maps' powers `Tˡ`, `l = 1…L`, may take (8 MB: the paper model's
+/// 11 DOFs at 64 sub-steps take 0.6 MB); a larger model steps a window's state by
+/// `log₂ L + 1` products of `T^(2ᵏ)` instead of one.
+const MAX_WINDOW_MAP_BYTES: usize = 8 << 20;
+
+/// The slip map of a window of sub-steps `a+1 … a+l` inside a sample, `0 ≤ a < a + l ≤ L`:
+/// the samples in which a friction reverses or sticks ([`SlipSampleMap::try_sample`]
+/// refuses them) are stepped by these maps up to the sub-step the slip test cannot clear,
+/// that one sub-step by the force solve, and the rest of the sample again by a window.
+///
+/// Why: where a joint's rate crosses zero in about half the samples (a Coulomb joint under
+/// a broadband force), those samples took all `L` sub-steps through the force solve, most of
+/// a free-run identification's time with 64 sub-steps; a reversal needs the force solve
+/// only in the sub-step where it happens.
+///
+/// With the excitation `p_{a+k} = p_a + k Δp` over the window (linear over the sample, as
+/// the sub-steps interpolate it) and the constant connection forces `b` of the slip:
+/// `x_{a+l} = Tˡ x_a + S_l p_a + V_l Δp + B_l b` with `S_l = Σ_{m<l} Tᵐ Q_p`,
+/// `V_l = Σ_{m<l} (l − m) Tᵐ Q_p` and `B_l = Σ_{m<l} Tᵐ Q_b`; the slip test reads `δ` (or
+/// `δ̇`) at every sub-step of the window from the same sums through the friction's rows.
+/// Algebraically the same sub-steps as the force solve's while the test clears them (the
+/// uniqueness argument of [`SlipSampleMap`]); they differ by round-off only.
+struct SlipWindows {
+    /// Per lag `l = 1…L`, the window's map of [`Self::input`]: `[Tˡ S_l V_l B_l]` side by
+    /// side (`3n × (3n + 2 ne + q)`), or only `[S_l V_l B_l]` where the `L` powers of `T`
+    /// would take more than [`MAX_WINDOW_MAP_BYTES`] (then [`Self::powers`] step the state).
+    lag_maps: Vec<DMatrix<f64>>,
+    /// `T^(2ᵏ)`, k = 0, 1, … while `2ᵏ ≤ L`, when `lag_maps` hold no powers: `Tˡ x` in at
+    /// most `log₂ L + 1` products. Empty otherwise.
+    powers: Vec<DMatrix<f64>>,
+    /// The slip test's rows, lag `m = 1…L` and friction `i` at row `(m − 1) r + i`: the
+    /// friction's `δ` (or `δ̇`) row times `[Tᵐ S_m V_m B_m]`, a map of [`Self::input`];
+    /// stored transposed (a row per column), read in order up to the first row not cleared.
+    check_rows: DMatrix<f64>,
+    /// Per check row: the absolute row sums of its four blocks (its round-off scale).
+    row_sums: Vec<[f64; 4]>,
+    /// The window's inputs side by side, `(x_a; p_a; Δp; b)`, `3n + 2 ne + q`.
+    input: DVector<f64>,
+    ne: usize,
+    q: usize,
+    /// Work vectors.
+    powered: DVector<f64>,
+    next: DVector<f64>,
+}
+
+impl SlipWindows {
+    fn new(
+        T: &DMatrix<f64>,
+        substeps: usize,
+        lag_inputs: Vec<DMatrix<f64>>,
+        check: DMatrix<f64>,
+        ne: usize,
+        q: usize,
+        map_bytes: usize,
+    ) -> Self {
+        let dim = T.nrows();
+        let mut powers = Vec::new();
+        let mut lag_maps = lag_inputs;
+        if substeps * dim * dim * std::mem::size_of::<f64>() <= map_bytes {
+            let mut power = T.clone();
+            for map in &mut lag_maps {
+                *map = crate::dense::side_by_side(&[&power, map]);
+                power = product(T, &power);
+            }
+        } else {
+            powers.push(T.clone());
+            while 1 << powers.len() <= substeps {
+                let last = powers.last().unwrap_or(T);
+                powers.push(product(last, last));
+            }
+        }
+        let blocks = [(0, dim), (dim, ne), (dim + ne, ne), (dim + 2 * ne, q)];
+        let row_sums = (0..check.nrows())
+            .map(|row| {
+                blocks.map(|(at, len)| {
+                    check
+                        .view((row, at), (1, len))
+                        .iter()
+                        .map(|v| v.abs())
+                        .sum()
+                })
+            })
+            .collect();
+        Self {
+            powers,
+            lag_maps,
+            row_sums,
+            input: DVector::zeros(dim + 2 * ne + q),
+            ne,
+            q,
+            powered: DVector::zeros(dim),
+            next: DVector::zeros(dim),
+            check_rows: crate::dense::transposed(&check),
+        }
+    }
+
+    /// Set the window's start `x_a` from `s`, `p_a` and `Δp` for a window from sub-step `a`
+    /// of `L` in the sample `pa → pb` (missing channels read as 0); `b` is set apart.
+    fn start(&mut self, s: &State, a: usize, substeps: usize, pa: &[f64], pb: &[f64]) {
+        let n = s.u.len();
+        let ne = self.ne;
+        let input = self.input.as_mut_slice();
+        input[..n].copy_from_slice(s.u.as_slice());
+        input[n..2 * n].copy_from_slice(s.v.as_slice());
+        input[2 * n..3 * n].copy_from_slice(s.a.as_slice());
+        let t = a as f64 / substeps as f64;
+        for j in 0..ne {
+            let (x0, x1) = (
+                pa.get(j).copied().unwrap_or(0.0),
+                pb.get(j).copied().unwrap_or(0.0),
+            );
+            // As the sub-steps interpolate the excitation.
+            input[3 * n + j] = x0 + t * (x1 - x0);
+            input[3 * n + ne + j] = (x1 - x0) / substeps as f64;
+        }
+    }
+
+    /// The constant connection forces `b` of the window (the last `q` inputs).
+    fn forces_mut(&mut self) -> &mut [f64] {
+        let at = self.input.len() - self.q;
+        &mut self.input.as_mut_slice()[at..]
+    }
+
+    /// How many of the sub-steps `a+1 … L` the slip of `signs` clears, in order from the
+    /// first (the friction's `δ` or `δ̇` has its slip's sign by more than its round-off).
+    fn cleared(&mut self, a: usize, substeps: usize, signs: &[f64]) -> usize {
+        use crate::dense::amax;
+        let dim = self.powered.len();
+        let ne = self.ne;
+        let input = self.input.as_slice();
+        let norms = [
+            amax(&input[..dim]),
+            amax(&input[dim..dim + ne]),
+            amax(&input[dim + ne..dim + 2 * ne]),
+            amax(&input[dim + 2 * ne..]),
+        ];
+        let r = signs.len();
+        let rows = (substeps - a) * r;
+        let deltas = self
+            .check_rows
+            .as_slice()
+            .chunks_exact(input.len())
+            .map(|row| crate::dense::dot(row, input));
+        for (row, (delta, sums)) in deltas.zip(&self.row_sums).take(rows).enumerate() {
+            let scale: f64 = sums.iter().zip(&norms).map(|(s, v)| s * v).sum();
+            // Written so that a NaN fails the test too.
+            let clear = signs[row % r] * delta > SLIP_TEST_MARGIN * scale;
+            if !clear {
+                return row / r;
+            }
+        }
+        substeps - a
+    }
+
+    /// Step `s` over the `l ≥ 1` sub-steps of the window [`Self::start`]ed at it.
+    fn advance(&mut self, s: &mut State, l: usize) {
+        use crate::dense::{Op, gemv, gemv_slices};
+        let n = s.u.len();
+        let dim = 3 * n;
+        let map = &self.lag_maps[l - 1];
+        if map.ncols() == self.input.len() {
+            gemv(&mut self.powered, map, &self.input, Op::Set);
+            s.u.copy_from(&self.powered.rows(0, n));
+            s.v.copy_from(&self.powered.rows(n, n));
+            s.a.copy_from(&self.powered.rows(2 * n, n));
+            return;
+        }
+        self.powered.copy_from(&self.input.rows(0, dim));
+        let mut bits = l;
+        for power in &self.powers {
+            if bits & 1 == 1 {
+                gemv(&mut self.next, power, &self.powered, Op::Set);
+                std::mem::swap(&mut self.next, &mut self.powered);
+            }
+            bits >>= 1;
+        }
+        gemv_slices(
+            self.powered.as_mut_slice(),
+            map,
+            &self.input.as_slice()[dim..],
+            Op::Add,
+        );
+        s.u.copy_from(&self.powered.rows(0, n));
+        s.v.copy_from(&self.powered.rows(n, n));
+        s.a.copy_from(&self.powered.rows(2 * n, n));
+    }
 }
 
 /// Margin of a slip direction's test over the round-off scale of `δ_j` (`Σ|terms|` of the
@@ -1308,6 +1510,19 @@ impl SlipSampleMap {
         params: &[f64],
         dt_s: f64,
         substeps: usize,
+    ) -> Result<Option<Self>, SimulateError> {
+        Self::with_window_bytes(setup, model, params, dt_s, substeps, MAX_WINDOW_MAP_BYTES)
+    }
+
+    /// [`Self::new`] with the window maps' powers of `T` held only within `map_bytes`
+    /// ([`SlipWindows`]; the tests step both ways).
+    fn with_window_bytes(
+        setup: &Setup,
+        model: &Model,
+        params: &[f64],
+        dt_s: f64,
+        substeps: usize,
+        map_bytes: usize,
     ) -> Result<Option<Self>, SimulateError> {
         if !model.has_dense() || substeps == 0 {
             return Ok(None);
@@ -1383,6 +1598,11 @@ impl SlipSampleMap {
         let mut g0 = DMatrix::<f64>::zeros(3 * n, ne);
         let mut g1 = DMatrix::<f64>::zeros(3 * n, ne);
         let mut gb = DMatrix::<f64>::zeros(3 * n, q);
+        // The windows' sums at lag `j` ([`SlipWindows`]): `S_j`, `V_j`, `B_j`, from lag 1.
+        let windowed = r > 0 && L >= 2 && n <= MAX_WINDOW_DOFS;
+        let (mut lag_s, mut lag_v, mut lag_b) = (Qp.clone(), Qp.clone(), Qb.clone());
+        let mut lag_inputs = Vec::new();
+        let mut lag_check = DMatrix::zeros(if windowed { r * L } else { 0 }, 3 * n + 2 * ne + q);
         for j in 1..=L {
             let t = j as f64 / L as f64;
             s = product(&s, &T);
@@ -1400,7 +1620,23 @@ impl SlipSampleMap {
             check_b
                 .view_mut(rows, (r, q))
                 .copy_from(&product(&select, &gb));
+            if windowed {
+                let inputs = crate::dense::side_by_side(&[&lag_s, &lag_v, &lag_b]);
+                lag_check
+                    .view_mut(rows, (r, 3 * n))
+                    .copy_from(&check_state.view(rows, (r, 3 * n)));
+                lag_check
+                    .view_mut((rows.0, 3 * n), (r, 2 * ne + q))
+                    .copy_from(&product(&select, &inputs));
+                lag_inputs.push(inputs);
+                // S_{j+1} = Qp + T S_j, V_{j+1} = V_j + S_{j+1}, B_{j+1} = Qb + T B_j.
+                lag_s = product(&T, &lag_s) + &Qp;
+                lag_v += &lag_s;
+                lag_b = product(&T, &lag_b) + &Qb;
+            }
         }
+        let windows =
+            windowed.then(|| SlipWindows::new(&T, L, lag_inputs, lag_check, ne, q, map_bytes));
         let abs_sum = |m: &DMatrix<f64>, row: usize| m.row(row).iter().map(|v| v.abs()).sum();
         let row_sums = (0..r * L)
             .map(|row| {
@@ -1420,23 +1656,30 @@ impl SlipSampleMap {
         Ok(Some(Self {
             largest_row_sums,
             step: side_by_side(&[&phi, &g0, &g1, &gb]),
-            check: side_by_side(&[&check_state, &check_p0, &check_p1, &check_b]),
+            check_rows: crate::dense::transposed(&side_by_side(&[
+                &check_state,
+                &check_p0,
+                &check_p1,
+                &check_b,
+            ])),
             row_sums,
             friction,
             select: select_taps,
             const_force,
             input: DVector::zeros(3 * n + 2 * ne + q),
             ne,
-            checks: DVector::zeros(r * L),
             next: DVector::zeros(3 * n),
             signs: vec![0.0; r],
+            windows,
+            substeps: L,
         }))
     }
 
     /// Step the sample `pa → pb` if every friction keeps slipping the way the start state's
-    /// `δ` (or `δ̇`) points through all the sub-steps; `false` (and `s` untouched) when it
-    /// does not, or when a friction starts at `δ = 0`.
-    fn try_sample(&mut self, s: &mut State, pa: &[f64], pb: &[f64]) -> bool {
+    /// `δ` (or `δ̇`) points through all the sub-steps. When it does not (`s` untouched), the
+    /// error holds how many of the first sub-steps the test cleared (0 when a friction
+    /// starts at `δ = 0`).
+    fn try_sample(&mut self, s: &mut State, pa: &[f64], pb: &[f64]) -> Result<(), usize> {
         use crate::dense::amax;
         let n = s.u.len();
         let ne = self.ne;
@@ -1454,7 +1697,7 @@ impl SlipSampleMap {
                 .iter()
                 .fold(-0.0, |acc, &(j, coef)| acc + coef * x[j]);
             if now == 0.0 || !now.is_finite() {
-                return false;
+                return Err(0);
             }
             self.signs[i] = now.signum();
             b[ci] += self.signs[i] * level;
@@ -1465,23 +1708,24 @@ impl SlipSampleMap {
             p1[j] = pb.get(j).copied().unwrap_or(0.0);
         }
         let norms = [amax(x), amax(p0), amax(p1), b_max];
-        crate::dense::gemv(
-            &mut self.checks,
-            &self.check,
-            &self.input,
-            crate::dense::Op::Set,
-        );
         let scale_of =
             |sums: &[f64; 4]| -> f64 { sums.iter().zip(&norms).map(|(a, b)| a * b).sum() };
         // The round-off scale of the worst row bounds every row's: most rows clear it.
         let bound = SLIP_TEST_MARGIN * scale_of(&self.largest_row_sums);
         let signs = self.signs.iter().cycle();
-        for ((delta, sums), sign) in self.checks.iter().zip(&self.row_sums).zip(signs) {
+        let r = self.signs.len();
+        let width = self.input.len();
+        let deltas = self
+            .check_rows
+            .as_slice()
+            .chunks_exact(width)
+            .map(|row| crate::dense::dot(row, self.input.as_slice()));
+        for (row, ((delta, sums), sign)) in deltas.zip(&self.row_sums).zip(signs).enumerate() {
             let margin = sign * delta;
             // Written so that a NaN fails the test too.
             let clear = margin > bound || margin > SLIP_TEST_MARGIN * scale_of(sums);
             if !clear {
-                return false;
+                return Err(row / r);
             }
         }
         crate::dense::gemv(
@@ -1493,7 +1737,85 @@ impl SlipSampleMap {
         s.u.copy_from(&self.next.rows(0, n));
         s.v.copy_from(&self.next.rows(n, n));
         s.a.copy_from(&self.next.rows(2 * n, n));
-        true
+        Ok(())
+    }
+
+    /// Step a sample that [`Self::try_sample`] refused after clearing its first `cleared`
+    /// sub-steps: those by a window map ([`SlipWindows`]), the sub-step the test could not
+    /// clear by `sys`'s force solve, the rest again by a window from there, and so on.
+    /// `None` when there are no windows or a force solve fails.
+    fn sample_by_windows(
+        &mut self,
+        sys: &mut TruthSystem,
+        s: &mut State,
+        pa: &[f64],
+        pb: &[f64],
+        cleared: usize,
+        pt: &mut DVector<f64>,
+    ) -> Option<()> {
+        let L = self.substeps;
+        let windows = self.windows.as_mut()?;
+        let (mut a, mut cleared) = (0, cleared);
+        // The whole-sample test's slip (its signs and forces) holds for the sub-steps it
+        // cleared.
+        if cleared > 0 {
+            windows.start(s, 0, L, pa, pb);
+            let b = &self.input.as_slice()[self.input.len() - windows.q..];
+            let b = b.to_vec();
+            windows.forces_mut().copy_from_slice(&b);
+        }
+        loop {
+            if cleared > 0 {
+                windows.advance(s, cleared);
+                for (&(ci, ..), &sign) in self.friction.iter().zip(&self.signs) {
+                    sys.status[ci] = Status::Slip(sign);
+                }
+                a += cleared;
+            }
+            if a == L {
+                return Some(());
+            }
+            // The sub-step the test could not clear: by the force solve, the excitation
+            // interpolated as [`TruthSystem::sample_substeps`] does.
+            let t = (a + 1) as f64 / L as f64;
+            for j in 0..pt.len() {
+                let (x0, x1) = (
+                    pa.get(j).copied().unwrap_or(0.0),
+                    pb.get(j).copied().unwrap_or(0.0),
+                );
+                pt[j] = x0 + t * (x1 - x0);
+            }
+            sys.substep_in_place(s, pt)?;
+            a += 1;
+            if a == L {
+                return Some(());
+            }
+            // The slip the new state points to, as the whole-sample test takes it.
+            windows.start(s, a, L, pa, pb);
+            let b = windows.forces_mut();
+            b.copy_from_slice(self.const_force.as_slice());
+            let mut slipping = true;
+            for (i, taps) in self.select.iter().enumerate() {
+                let x = windows.input.as_slice();
+                let now = taps.iter().fold(-0.0, |acc, &(j, coef)| acc + coef * x[j]);
+                if now == 0.0 || !now.is_finite() {
+                    slipping = false;
+                    break;
+                }
+                self.signs[i] = now.signum();
+            }
+            if slipping {
+                let at = windows.input.len() - windows.q;
+                for (&(ci, _, level), sign) in self.friction.iter().zip(&self.signs) {
+                    windows.input[at + ci] += sign * level;
+                }
+            }
+            cleared = if slipping {
+                windows.cleared(a, L, &self.signs)
+            } else {
+                0
+            };
+        }
     }
 
     /// The slip directions of the last [`Self::try_sample`] that succeeded, per friction's
@@ -2066,6 +2388,72 @@ mod tests {
         }
     }
 
+    /// The samples the whole-sample slip test refuses (a friction reverses or sticks inside
+    /// them) are stepped by windows of the slip map around force-solved sub-steps to the
+    /// states of the sub-step force solve, to 1e-9, ending in its statuses (the paper's joint
+    /// with either `sign` term, 8 and 64 sub-steps, 300 samples, most of them refused; the
+    /// window maps holding every power of `T`, and stepping by `T^(2ᵏ)` as a large model does).
+    #[test]
+    fn slip_windows_step_the_refused_samples_as_the_force_solve_does() {
+        let toml = shipped_friction_toml();
+        for (law, level) in [("sign(u)", 3.0e3), ("sign(v)", 1.0e3)] {
+            let text = toml.replace("\"sign(u)\"", &format!("\"{law}\""));
+            let setup = Setup::from_toml(&text, "two-beam-friction.toml").unwrap();
+            let model = Model::assemble(&setup).unwrap();
+            let params = paper_joint_params(&setup, level);
+            let exc = random_excitation(model.Lp.ncols(), 300, 1.5e3, 5);
+            // The window maps holding every power of `T`, and stepping by `T^(2ᵏ)`.
+            for (substeps, map_bytes) in [
+                (8, MAX_WINDOW_MAP_BYTES),
+                (64, MAX_WINDOW_MAP_BYTES),
+                (64, 0),
+            ] {
+                let h = setup.dt_s / substeps as f64;
+                let mut slow = TruthSystem::with_params(&setup, &model, h, &params).unwrap();
+                let mut fast = TruthSystem::with_params(&setup, &model, h, &params).unwrap();
+                let mut map = SlipSampleMap::with_window_bytes(
+                    &setup, &model, &params, setup.dt_s, substeps, map_bytes,
+                )
+                .unwrap()
+                .unwrap();
+                let windows = map.windows.as_ref().unwrap();
+                assert_eq!(
+                    windows.powers.is_empty(),
+                    map_bytes > 0,
+                    "{law}, {substeps} sub-steps"
+                );
+                let mut a = rest_state(&model, &slow, &exc[0]).unwrap();
+                let mut pt = DVector::zeros(model.Lp.ncols());
+                let (mut windowed, mut worst) = (0, 0.0f64);
+                for i in 1..exc.len() {
+                    let (pa, pb) = (&exc[i - 1], &exc[i]);
+                    let mut b = a.clone();
+                    fast.status.clone_from(&slow.status);
+                    let refused = map.try_sample(&mut b, pa, pb);
+                    slow.sample_substeps(&mut a, pa, pb, substeps, &mut pt)
+                        .unwrap();
+                    let Err(cleared) = refused else { continue };
+                    windowed += 1;
+                    map.sample_by_windows(&mut fast, &mut b, pa, pb, cleared, &mut pt)
+                        .unwrap();
+                    assert_eq!(
+                        fast.status, slow.status,
+                        "{law}, {substeps} sub-steps, sample {i}"
+                    );
+                    worst = worst.max(relative_difference(&a, &b));
+                }
+                assert!(
+                    worst <= 1e-9,
+                    "{law}, {substeps} sub-steps: relative difference {worst:e}"
+                );
+                assert!(
+                    windowed >= 30,
+                    "{law}, {substeps} sub-steps: only {windowed} of 299 samples refused"
+                );
+            }
+        }
+    }
+
     /// The paper's joint law with friction `level` (either `sign` term), a spring, a damper
     /// and a constant force, in the setup's parameter order.
     fn paper_joint_params(setup: &Setup, level: f64) -> Vec<f64> {
@@ -2103,7 +2491,7 @@ mod tests {
         let (mut stepped, mut worst) = (0, 0.0f64);
         for i in 1..exc.len() {
             let mut b = a.clone();
-            let took = map.try_sample(&mut b, &exc[i - 1], &exc[i]);
+            let took = map.try_sample(&mut b, &exc[i - 1], &exc[i]).is_ok();
             slow.sample_substeps(&mut a, &exc[i - 1], &exc[i], substeps, &mut pt)
                 .unwrap();
             if !took {

@@ -143,6 +143,12 @@ impl ParameterInterval {
         self.below.distance.max(self.above.distance) * stated / Z_95
     }
 
+    /// [`Self::error`] over the stated error, at least 1 exactly (a crossing is never
+    /// inside 1.96; the ratio of the two errors could fall an ulp below 1).
+    pub fn widening(&self) -> f64 {
+        self.below.distance.max(self.above.distance) / Z_95
+    }
+
     pub fn reached(&self) -> bool {
         self.below.reached && self.above.reached
     }

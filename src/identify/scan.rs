@@ -1307,7 +1307,7 @@ pub(super) fn restate_final_errors(
                     continue;
                 };
                 let e = i.error(p.std_error);
-                widths.push(Some(e / p.std_error));
+                widths.push(Some(i.widening()));
                 if i.lowest() < -1.0 {
                     lower.push(format!("`{}` (Δχ² = {:.1})", p.basis, -i.lowest()));
                 }
