@@ -1230,7 +1230,7 @@ impl SampleStepper {
                     }
                     return Some(());
                 }
-                Err(cleared) if map.windows.is_some() => {
+                Err(cleared) if map.window_parts.is_some() => {
                     return map.sample_by_windows(sys, s, pa, pb, cleared, &mut self.pt);
                 }
                 Err(_) => {}
@@ -1296,7 +1296,10 @@ struct SlipSampleMap {
     next: DVector<f64>,
     signs: Vec<f64>,
     /// The maps of windows of sub-steps inside a sample, for the samples the whole-sample
-    /// test refuses (`None` with one sub-step, no active friction or a large model).
+    /// test refuses: built from `window_parts` at the first such sample (a record whose
+    /// frictions never reverse does not pay for them). `window_parts` is `None` with one
+    /// sub-step, no active friction or a large model.
+    window_parts: Option<WindowParts>,
     windows: Option<SlipWindows>,
     substeps: usize,
 }
@@ -1350,20 +1353,51 @@ struct SlipWindows {
     next: DVector<f64>,
 }
 
+/// The slip map's pieces that [`SlipWindows`] are built from: the folded sub-step
+/// `x' = T x + Q_p p + Q_b b`, the frictions' `δ` (or `δ̇`) rows of the state, and those rows
+/// through `Tʲ`, `j = 1…L` (the whole-sample test's state block).
+struct WindowParts {
+    T: DMatrix<f64>,
+    Qp: DMatrix<f64>,
+    Qb: DMatrix<f64>,
+    select: DMatrix<f64>,
+    check_state: DMatrix<f64>,
+    /// The most the powers `Tˡ` may take ([`MAX_WINDOW_MAP_BYTES`]; the tests vary it).
+    map_bytes: usize,
+}
+
 impl SlipWindows {
-    fn new(
-        T: &DMatrix<f64>,
-        substeps: usize,
-        lag_inputs: Vec<DMatrix<f64>>,
-        check: DMatrix<f64>,
-        ne: usize,
-        q: usize,
-        map_bytes: usize,
-    ) -> Self {
-        let dim = T.nrows();
+    fn new(parts: &WindowParts, substeps: usize) -> Self {
+        let WindowParts {
+            T,
+            Qp,
+            Qb,
+            select,
+            check_state,
+            map_bytes,
+        } = parts;
+        let (dim, ne, q, r) = (T.nrows(), Qp.ncols(), Qb.ncols(), select.nrows());
+        // The sums at lag `j`: `S_j`, `V_j`, `B_j` side by side, and the test's rows of them.
+        let (mut lag_s, mut lag_v, mut lag_b) = (Qp.clone(), Qp.clone(), Qb.clone());
+        let mut lag_maps = Vec::with_capacity(substeps);
+        let mut check = DMatrix::zeros(r * substeps, dim + 2 * ne + q);
+        for j in 1..=substeps {
+            let inputs = crate::dense::side_by_side(&[&lag_s, &lag_v, &lag_b]);
+            let row = r * (j - 1);
+            check
+                .view_mut((row, 0), (r, dim))
+                .copy_from(&check_state.view((row, 0), (r, dim)));
+            check
+                .view_mut((row, dim), (r, 2 * ne + q))
+                .copy_from(&product(select, &inputs));
+            lag_maps.push(inputs);
+            // S_{j+1} = Q_p + T S_j, V_{j+1} = V_j + S_{j+1}, B_{j+1} = Q_b + T B_j.
+            lag_s = product(T, &lag_s) + Qp;
+            lag_v += &lag_s;
+            lag_b = product(T, &lag_b) + Qb;
+        }
         let mut powers = Vec::new();
-        let mut lag_maps = lag_inputs;
-        if substeps * dim * dim * std::mem::size_of::<f64>() <= map_bytes {
+        if substeps * dim * dim * std::mem::size_of::<f64>() <= *map_bytes {
             let mut power = T.clone();
             for map in &mut lag_maps {
                 *map = crate::dense::side_by_side(&[&power, map]);
@@ -1598,11 +1632,6 @@ impl SlipSampleMap {
         let mut g0 = DMatrix::<f64>::zeros(3 * n, ne);
         let mut g1 = DMatrix::<f64>::zeros(3 * n, ne);
         let mut gb = DMatrix::<f64>::zeros(3 * n, q);
-        // The windows' sums at lag `j` ([`SlipWindows`]): `S_j`, `V_j`, `B_j`, from lag 1.
-        let windowed = r > 0 && L >= 2 && n <= MAX_WINDOW_DOFS;
-        let (mut lag_s, mut lag_v, mut lag_b) = (Qp.clone(), Qp.clone(), Qb.clone());
-        let mut lag_inputs = Vec::new();
-        let mut lag_check = DMatrix::zeros(if windowed { r * L } else { 0 }, 3 * n + 2 * ne + q);
         for j in 1..=L {
             let t = j as f64 / L as f64;
             s = product(&s, &T);
@@ -1620,23 +1649,16 @@ impl SlipSampleMap {
             check_b
                 .view_mut(rows, (r, q))
                 .copy_from(&product(&select, &gb));
-            if windowed {
-                let inputs = crate::dense::side_by_side(&[&lag_s, &lag_v, &lag_b]);
-                lag_check
-                    .view_mut(rows, (r, 3 * n))
-                    .copy_from(&check_state.view(rows, (r, 3 * n)));
-                lag_check
-                    .view_mut((rows.0, 3 * n), (r, 2 * ne + q))
-                    .copy_from(&product(&select, &inputs));
-                lag_inputs.push(inputs);
-                // S_{j+1} = Qp + T S_j, V_{j+1} = V_j + S_{j+1}, B_{j+1} = Qb + T B_j.
-                lag_s = product(&T, &lag_s) + &Qp;
-                lag_v += &lag_s;
-                lag_b = product(&T, &lag_b) + &Qb;
-            }
         }
-        let windows =
-            windowed.then(|| SlipWindows::new(&T, L, lag_inputs, lag_check, ne, q, map_bytes));
+        // What the windows are built from, at the first sample the test refuses.
+        let window_parts = (r > 0 && L >= 2 && n <= MAX_WINDOW_DOFS).then(|| WindowParts {
+            T: T.clone(),
+            Qp,
+            Qb,
+            select,
+            check_state: check_state.clone(),
+            map_bytes,
+        });
         let abs_sum = |m: &DMatrix<f64>, row: usize| m.row(row).iter().map(|v| v.abs()).sum();
         let row_sums = (0..r * L)
             .map(|row| {
@@ -1670,7 +1692,8 @@ impl SlipSampleMap {
             ne,
             next: DVector::zeros(3 * n),
             signs: vec![0.0; r],
-            windows,
+            window_parts,
+            windows: None,
             substeps: L,
         }))
     }
@@ -1754,6 +1777,9 @@ impl SlipSampleMap {
         pt: &mut DVector<f64>,
     ) -> Option<()> {
         let L = self.substeps;
+        if self.windows.is_none() {
+            self.windows = Some(SlipWindows::new(self.window_parts.as_ref()?, L));
+        }
         let windows = self.windows.as_mut()?;
         let (mut a, mut cleared) = (0, cleared);
         // The whole-sample test's slip (its signs and forces) holds for the sub-steps it
@@ -2416,7 +2442,7 @@ mod tests {
                 )
                 .unwrap()
                 .unwrap();
-                let windows = map.windows.as_ref().unwrap();
+                let windows = SlipWindows::new(map.window_parts.as_ref().unwrap(), substeps);
                 assert_eq!(
                     windows.powers.is_empty(),
                     map_bytes > 0,
