@@ -1263,8 +1263,9 @@ impl SampleStepper {
 /// of the implicit sub-step (a set-valued friction with a positive compliance has one:
 /// `δ` under `+level` is below `δ` under `−level`, and sticking needs `δ = 0`), which the
 /// force solve would also have found: the same sub-steps, up to round-off. Otherwise
-/// (a reversal or a stick inside the sample, a joint at rest) the sample is stepped by the
-/// force solve.
+/// (a reversal or a stick inside the sample, a joint at rest) the sub-steps the test
+/// cleared are stepped by a window map ([`SlipWindows`]), the first it could not clear by the
+/// force solve, and the rest of the sample tested and stepped again from there.
 struct SlipSampleMap {
     /// The sample's end state from its inputs `(x; p_{i−1}; p_i; b)` ([`Self::input`]):
     /// `[Φ Γ₀ Γ₁ Γ_b]` side by side ([`crate::dense::side_by_side`]), `Γ_b` the state's
@@ -1304,8 +1305,9 @@ struct SlipSampleMap {
     substeps: usize,
 }
 
-/// Most model DOFs for which the slip map keeps its window maps ([`SlipWindows`]: about
-/// `log₂ L + 1` matrices of `3n × 3n`).
+/// Most model DOFs for which the slip map builds window maps ([`SlipWindows`]: `L` maps of
+/// `3n × (3n + 2 ne + q)` within [`MAX_WINDOW_MAP_BYTES`], else `log₂ L + 1` powers of the
+/// `3n × 3n` sub-step).
 const MAX_WINDOW_DOFS: usize = 100;
 
 /// Most memory the window maps' powers `Tˡ`, `l = 1…L`, may take (8 MB: the paper model's
@@ -1787,8 +1789,7 @@ impl SlipSampleMap {
         if cleared > 0 {
             windows.start(s, 0, L, pa, pb);
             let b = &self.input.as_slice()[self.input.len() - windows.q..];
-            let b = b.to_vec();
-            windows.forces_mut().copy_from_slice(&b);
+            windows.forces_mut().copy_from_slice(b);
         }
         loop {
             if cleared > 0 {
