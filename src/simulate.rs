@@ -577,13 +577,7 @@ impl TruthSystem {
     ) -> Option<()> {
         for k in 1..=substeps {
             let t = k as f64 / substeps as f64;
-            for j in 0..pt.len() {
-                let (x0, x1) = (
-                    pa.get(j).copied().unwrap_or(0.0),
-                    pb.get(j).copied().unwrap_or(0.0),
-                );
-                pt[j] = x0 + t * (x1 - x0);
-            }
+            interpolate_excitation(pt.as_mut_slice(), pa, pb, t);
             self.substep_in_place(s, pt)?;
         }
         Some(())
@@ -663,6 +657,18 @@ impl TruthSystem {
 
     pub fn any_stuck(&self) -> bool {
         self.status.contains(&Status::Stick)
+    }
+}
+
+/// The excitation a fraction `t` of the way through the sample `pa → pb`, `pa + t (pb − pa)`
+/// per channel (a missing channel reads as 0): how every sub-step path interpolates it.
+fn interpolate_excitation(out: &mut [f64], pa: &[f64], pb: &[f64], t: f64) {
+    for (j, o) in out.iter_mut().enumerate() {
+        let (x0, x1) = (
+            pa.get(j).copied().unwrap_or(0.0),
+            pb.get(j).copied().unwrap_or(0.0),
+        );
+        *o = x0 + t * (x1 - x0);
     }
 }
 
@@ -1447,13 +1453,12 @@ impl SlipWindows {
         input[n..2 * n].copy_from_slice(s.v.as_slice());
         input[2 * n..3 * n].copy_from_slice(s.a.as_slice());
         let t = a as f64 / substeps as f64;
+        interpolate_excitation(&mut input[3 * n..3 * n + ne], pa, pb, t);
         for j in 0..ne {
             let (x0, x1) = (
                 pa.get(j).copied().unwrap_or(0.0),
                 pb.get(j).copied().unwrap_or(0.0),
             );
-            // As the sub-steps interpolate the excitation.
-            input[3 * n + j] = x0 + t * (x1 - x0);
             input[3 * n + ne + j] = (x1 - x0) / substeps as f64;
         }
     }
@@ -1805,13 +1810,7 @@ impl SlipSampleMap {
             // The sub-step the test could not clear: by the force solve, the excitation
             // interpolated as [`TruthSystem::sample_substeps`] does.
             let t = (a + 1) as f64 / L as f64;
-            for j in 0..pt.len() {
-                let (x0, x1) = (
-                    pa.get(j).copied().unwrap_or(0.0),
-                    pb.get(j).copied().unwrap_or(0.0),
-                );
-                pt[j] = x0 + t * (x1 - x0);
-            }
+            interpolate_excitation(pt.as_mut_slice(), pa, pb, t);
             sys.substep_in_place(s, pt)?;
             a += 1;
             if a == L {
@@ -2394,13 +2393,7 @@ mod tests {
     /// others (reversals and sticks) to the force solve.
     #[test]
     fn slip_map_steps_exactly_the_samples_that_slip_one_way() {
-        let toml = shipped_friction_toml();
-        for (law, level) in [("sign(u)", 3.0e3), ("sign(v)", 1.0e3)] {
-            let text = toml.replace("\"sign(u)\"", &format!("\"{law}\""));
-            let setup = Setup::from_toml(&text, "two-beam-friction.toml").unwrap();
-            let model = Model::assemble(&setup).unwrap();
-            let params = paper_joint_params(&setup, level);
-            let exc = random_excitation(model.Lp.ncols(), 300, 1.5e3, 5);
+        for (law, setup, _, params, exc) in sign_law_cases() {
             for substeps in [1, 8, 64] {
                 let (stepped, worst) = slip_map_against_substeps(&setup, &params, substeps, &exc);
                 assert!(
@@ -2422,13 +2415,7 @@ mod tests {
     /// window maps holding every power of `T`, and stepping by `T^(2ᵏ)` as a large model does).
     #[test]
     fn slip_windows_step_the_refused_samples_as_the_force_solve_does() {
-        let toml = shipped_friction_toml();
-        for (law, level) in [("sign(u)", 3.0e3), ("sign(v)", 1.0e3)] {
-            let text = toml.replace("\"sign(u)\"", &format!("\"{law}\""));
-            let setup = Setup::from_toml(&text, "two-beam-friction.toml").unwrap();
-            let model = Model::assemble(&setup).unwrap();
-            let params = paper_joint_params(&setup, level);
-            let exc = random_excitation(model.Lp.ncols(), 300, 1.5e3, 5);
+        for (law, setup, model, params, exc) in sign_law_cases() {
             // The window maps holding every power of `T`, and stepping by `T^(2ᵏ)`.
             for (substeps, map_bytes) in [
                 (8, MAX_WINDOW_MAP_BYTES),
@@ -2479,6 +2466,24 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// The shipped friction setup with the paper's joint law under either `sign` term
+    /// (`sign(u)` at 3,000 N, `sign(v)` at 1,000 N), its model and parameters, and 300
+    /// samples of a random excitation that makes the joint stick and slip.
+    fn sign_law_cases()
+    -> impl Iterator<Item = (&'static str, Setup, Model, Vec<f64>, Vec<Vec<f64>>)> {
+        let toml = shipped_friction_toml();
+        [("sign(u)", 3.0e3), ("sign(v)", 1.0e3)]
+            .into_iter()
+            .map(move |(law, level)| {
+                let text = toml.replace("\"sign(u)\"", &format!("\"{law}\""));
+                let setup = Setup::from_toml(&text, "two-beam-friction.toml").unwrap();
+                let model = Model::assemble(&setup).unwrap();
+                let params = paper_joint_params(&setup, level);
+                let exc = random_excitation(model.Lp.ncols(), 300, 1.5e3, 5);
+                (law, setup, model, params, exc)
+            })
     }
 
     /// The paper's joint law with friction `level` (either `sign` term), a spring, a damper
