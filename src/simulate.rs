@@ -1186,9 +1186,11 @@ const MAX_COMPOSED_DOFS: usize = 300;
 
 /// How the observer's predictions ([`predictions_with_observer`]) and the free run of a law
 /// that is not linear ([`response_to_excitation`]) step a sample: a friction
-/// that slips one way through it by one composed map ([`SlipSampleMap`]); otherwise the
-/// force solve at every sub-step, two or more sub-steps composed around it
-/// ([`ComposedSubsteps`], built when first needed). The same sub-steps either way, up to
+/// that slips one way through it by one composed map ([`SlipSampleMap`]); one that reverses
+/// inside it (or sticks) by windows of that map around its force-solved sub-steps
+/// ([`SlipWindows`]); a law the slip map does not fold by the force solve at every
+/// sub-step, two or more sub-steps composed around it ([`ComposedSubsteps`], built when
+/// first needed). The same sub-steps every way, up to
 /// round-off (unit tests against the sub-step path).
 struct SampleStepper {
     slip: Option<SlipSampleMap>,
@@ -1236,6 +1238,10 @@ impl SampleStepper {
                     }
                     return Some(());
                 }
+                // A joint stuck through much of the sample takes its stuck sub-steps one
+                // force solve at a time here, not composed (a Coulomb record stuck in most
+                // of its samples: 12–15 % slower than the composed path; sending samples
+                // that start stuck to it recovered a quarter of that, BENCHMARKS.md).
                 Err(cleared) if map.window_parts.is_some() => {
                     return map.sample_by_windows(sys, s, pa, pb, cleared, &mut self.pt);
                 }
@@ -1256,7 +1262,8 @@ impl SampleStepper {
 /// The `L` Newmark sub-steps of one sample composed into one affine map for the samples in
 /// which every friction of a law linear in `δ`, `δ̇` apart from it (`u`, `v`, `const`,
 /// `sign(u)`, `sign(v)` terms) keeps slipping one way: the prediction-error refinement's
-/// map for most samples, with [`ComposedSubsteps`] or the sub-step force solve for the others.
+/// map for most samples, with its windows ([`SlipWindows`]), [`ComposedSubsteps`] or the
+/// sub-step force solve for the others.
 ///
 /// Why: while a friction slips one way its force is the constant `±level`, so with the
 /// linear terms folded into the structure (`K' = K + Lc diag(k) Lcᵀ`, `C' = C + Lc diag(c)
@@ -1708,7 +1715,7 @@ impl SlipSampleMap {
     /// Step the sample `pa → pb` if every friction keeps slipping the way the start state's
     /// `δ` (or `δ̇`) points through all the sub-steps. When it does not (`s` untouched), the
     /// error holds how many of the first sub-steps the test cleared (0 when a friction
-    /// starts at `δ = 0`).
+    /// starts at `δ = 0`, or at a `δ` that is not finite).
     fn try_sample(&mut self, s: &mut State, pa: &[f64], pb: &[f64]) -> Result<(), usize> {
         use crate::dense::amax;
         let n = s.u.len();
@@ -1773,7 +1780,7 @@ impl SlipSampleMap {
     /// Step a sample that [`Self::try_sample`] refused after clearing its first `cleared`
     /// sub-steps: those by a window map ([`SlipWindows`]), the sub-step the test could not
     /// clear by `sys`'s force solve, the rest again by a window from there, and so on.
-    /// `None` when there are no windows or a force solve fails.
+    /// `None` when a force solve fails (the caller makes sure there are windows to build).
     fn sample_by_windows(
         &mut self,
         sys: &mut TruthSystem,
@@ -1844,8 +1851,8 @@ impl SlipSampleMap {
         }
     }
 
-    /// The slip directions of the last [`Self::try_sample`] that succeeded, per friction's
-    /// connection.
+    /// The slip directions per friction's connection, as the last [`Self::try_sample`] set
+    /// them: read right after it succeeded.
     fn slips(&self) -> impl Iterator<Item = (usize, f64)> + '_ {
         self.friction
             .iter()
