@@ -1240,7 +1240,7 @@ impl SampleStepper {
                 }
                 // A joint stuck through much of the sample takes its stuck sub-steps one
                 // force solve at a time here, not composed (a Coulomb record stuck in most
-                // of its samples: 12–15 % slower than the composed path; sending samples
+                // of its samples: 13–19 % slower than the composed path; sending samples
                 // that start stuck to it recovered a quarter of that, BENCHMARKS.md).
                 Err(cleared) if map.window_parts.is_some() => {
                     return map.sample_by_windows(sys, s, pa, pb, cleared, &mut self.pt);
