@@ -1658,8 +1658,10 @@ fn identify_once(
     if has_sign_basis(setup)
         && let Some(sub) = result.output_error.as_ref().map(|r| r.substeps)
     {
+        let t0 = std::time::Instant::now();
         let fitted = as_fitted(data, &result);
         restate_final_errors(setup, &model, &fitted, &sigma, &estimated, sub, &mut result);
+        crate::par::phase("restated errors", t0);
     }
     // (Also when a later stage failed: the passes' own stop is reported beside the failure.)
     if !result.converged && result.stop_reason.is_empty() {
@@ -2396,6 +2398,7 @@ fn finish_with_output_error(
         return;
     }
     if opts.output_error {
+        let t0 = std::time::Instant::now();
         let refined = refine_global(
             setup,
             model,
@@ -2408,7 +2411,9 @@ fn finish_with_output_error(
             opts.output_error_iterations,
         )
         .map(|r| {
-            raise_substeps(
+            crate::par::phase("free run (passes' level)", t0);
+            let t0 = std::time::Instant::now();
+            let r = raise_substeps(
                 setup,
                 model,
                 data,
@@ -2418,7 +2423,9 @@ fn finish_with_output_error(
                 &scales,
                 r,
                 &mut result.notes,
-            )
+            );
+            crate::par::phase("free run (sub-step levels)", t0);
+            r
         });
         match refined {
             Ok(mut r) => {
@@ -2954,6 +2961,7 @@ fn raise_substeps(
     // 64 cost Δχ² = 186 less (Coulomb seed 7730; gap seed 7510: 120); ACCURACY.md,
     // thirty-eighth session).
     let significant = 1.0 / nobs;
+    let t_screen = std::time::Instant::now();
     let mut sub = opts.substeps;
     // The estimate one doubling coarser than `r`, and whether a finer level than the one
     // taken was tried and did not help (the sub-steps have converged).
@@ -3116,6 +3124,8 @@ fn raise_substeps(
     // at the data's 8 costs 6110; no level but 16 had been refined.
     let first_level = sub;
     let mut climbed_again = false;
+    crate::par::phase("sub-step screening", t_screen);
+    let t_continue = std::time::Instant::now();
     if !linear {
         let first_note = r.report.note.clone();
         let base_cost = r.report.cost_end;
@@ -3277,6 +3287,7 @@ fn raise_substeps(
             }
         }
     }
+    crate::par::phase("sub-step continuation", t_continue);
     if continued.iter().any(|c| c.ends_with(", taken")) {
         notes.push(format!(
             "model sub-steps {} by continuation to {sub} per sample: every doubling from {} up to {} refined from its neighbour nearer the first answer's {first_level}{}, the finest within Δχ² = {:.0} of the lowest cost taken ({}); the other levels' costs at the minima found had not shown it (such a minimum compensates its model's discretisation error)",
