@@ -1448,8 +1448,8 @@ impl SlipWindows {
     /// next (the constraint on `δ` or `δ̇` flips the connection's acceleration), so its
     /// stuck runs are short — on a Coulomb record stuck in most samples, half the windows
     /// tried break loose at their first sub-step — and building the `L` powers, once per
-    /// simulation, cost more than the windows saved (measured: 0.75 against 0.70 s a
-    /// record, BENCHMARKS.md).
+    /// simulation, cost more than the windows saved (measured on an ordinary Coulomb
+    /// record: 0.77 s with them, 0.70 s with the squares, BENCHMARKS.md).
     ///
     /// A stuck friction holds its `δ` (or `δ̇`) at 0 at every sub-step's end with the force
     /// `λ` that takes: the sub-step `x' = T x + Q_p p + Q_b b` becomes
