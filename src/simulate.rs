@@ -37,6 +37,12 @@ pub enum SimulateError {
     NegativeFriction(String, f64),
     #[error("the effective mass matrix is singular")]
     Singular,
+    /// A fit's sensitivities at its end: some parameter does not move the outputs there
+    /// (reported by the output-error refinement, which runs on this error type).
+    #[error(
+        "the Fisher information of the fit is singular: a parameter does not move the outputs there"
+    )]
+    SingularInformation,
     #[error(
         "the simulation diverged at sample {0} (Newton did not converge or the state is not finite)"
     )]

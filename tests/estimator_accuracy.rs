@@ -155,6 +155,27 @@ fn continuous_data_coulomb_friction_and_spring() {
     }
 }
 
+/// A Coulomb answer stopped in another valley of the friction's rough cost (data of the
+/// model's own discretisation, 1 % noise, seed 9815 of a fresh sweep: `sign(v)` −0.39 %,
+/// `u` +0.066 %). The likelihood-ratio walk along `sign(v)`'s profile line runs into
+/// costs lower than the answer's, where the refitted `u` moves farther than `u`'s own line
+/// showed (that one crossed 3.84 at 3.9 errors and left `u` 5.5 errors off). `u`'s error
+/// now reaches the values it takes inside the region on the other line (measured: 1.7
+/// errors off, its error 3.2× the line's own).
+#[test]
+fn an_error_reaches_what_another_parameters_line_found_inside_the_region() {
+    let s = two_beam(&["sign(v)", "u"], &[3000.0, 3.0e5], 1);
+    let id = run(&s, 2000, 1, Noise::Additive(0.01), 9815);
+    assert!(
+        id.notes
+            .iter()
+            .any(|n| n.contains("inside the region on another parameter's line")),
+        "{:?}",
+        id.notes
+    );
+    assert_every_parameter_within(&id, 3.0, "seed 9815");
+}
+
 /// The same at 100 % noise (seed 1): the first pass, run with zero joint stiffness, used to
 /// be refused as an undetermined deformation (posterior std 1.23× the RMS of δ̂; 0.75–0.91
 /// in the later passes) and the widened stuck band held every sample; now the first pass

@@ -382,7 +382,7 @@ pub fn refine(
         }
     }
     let (F, _) = normal_equations(&s);
-    let mut bound = crlb_from_fisher(&F).ok_or(SimulateError::Singular)?;
+    let mut bound = crlb_from_fisher(&F).ok_or(SimulateError::SingularInformation)?;
     // A secant's slope depends on its width: make the width the bound it gives (within 30 %,
     // at most three more Jacobians), so the stated error is the one over its own interval.
     if basis.iter().any(is_sign) {

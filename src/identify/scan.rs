@@ -1278,7 +1278,8 @@ pub(super) fn restate_final_errors(
         p.crlb = Some(*b);
     }
     // 3. The likelihood ratio: each error at least the distance at which the cost rises
-    //    by 3.84 along its profile line, over 1.96 (`likelihood`).
+    //    by 3.84 along its profile line, or at which it was found inside that region on
+    //    another parameter's line, over 1.96 (`likelihood`).
     let checked = match fisher {
         Some(F) => {
             let errors: Vec<f64> = last.parameters.iter().map(|p| p.std_error).collect();
@@ -1315,7 +1316,16 @@ pub(super) fn restate_final_errors(
                     undetermined.push(format!("`{}`", p.basis));
                 }
                 if e > p.std_error * super::likelihood::WIDEN_TOLERANCE {
-                    widened.push(format!("`{}` {:.2}×", p.basis, e / p.std_error));
+                    widened.push(format!(
+                        "`{}` {:.2}×{}",
+                        p.basis,
+                        e / p.std_error,
+                        if i.reached_from_elsewhere() {
+                            ", to a value it takes inside the region on another parameter's line"
+                        } else {
+                            ""
+                        }
+                    ));
                     p.std_error = e;
                     p.ci95 = [p.value - 1.96 * p.std_error, p.value + 1.96 * p.std_error];
                 }
