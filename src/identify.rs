@@ -2455,15 +2455,16 @@ fn finish_with_output_error(
             opts.substeps,
             opts.output_error_iterations,
         );
-        // Passes that did not converge and a last answer the free run cannot even start
-        // from (the data reject it outright): the likeliest of the passes' answers is the
-        // start instead. Measured (1-DOF `v, sign(v), const`, own-discretisation data,
-        // 100 % noise, seed 9820): the tenth pass jumped from `v` = 41 to −24 N s/m, a
-        // negative damper whose free run grows to χ² ≈ 1e26; the refinement from it failed
-        // and that answer was reported 5.2 errors off (ACCURACY.md, fifty-fourth session).
+        // Passes that did not converge and a refinement that failed from the start it was
+        // given: the likeliest of the passes' answers is the start instead (when it is
+        // another). Measured (1-DOF `v, sign(v), const`, own-discretisation data, 100 %
+        // noise, seed 9820): the tenth pass jumped from `v` = 41 to −24 N s/m, a negative
+        // damper whose free run grows to χ² ≈ 1e26; the refinement from it failed (its
+        // Fisher information singular at its end) and that answer was reported 5.2 errors
+        // off (ACCURACY.md, fifty-fourth session).
         if refined.is_err()
             && let Some(k) = likeliest_pass_answer(setup, model, data, sigma, opts, &pass_answers)
-            && k + 1 < pass_answers.len()
+            && pass_answers[k].0 != values
         {
             let (from, e) = pass_answers[k].clone();
             let again = refine_global(
@@ -2480,7 +2481,7 @@ fn finish_with_output_error(
             if let Ok(r) = again {
                 if let Err(why) = &refined {
                     result.notes.push(format!(
-                        "the passes did not converge and the output-error refinement could not run from the last pass's answer ({why}): it started from pass {} of {}, the one whose free run fits the record best",
+                        "the passes did not converge and the output-error refinement from their answer failed ({why}): it started again from pass {} of {}, the one whose free run fits the record best",
                         k + 1,
                         pass_answers.len()
                     ));

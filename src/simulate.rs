@@ -37,10 +37,11 @@ pub enum SimulateError {
     NegativeFriction(String, f64),
     #[error("the effective mass matrix is singular")]
     Singular,
-    /// A fit's sensitivities at its end: some parameter does not move the outputs there
-    /// (reported by the output-error refinement, which runs on this error type).
+    /// A fit's sensitivities at its end: some parameter, or a combination of them, does not
+    /// move the outputs there (reported by the output-error refinement, which runs on this
+    /// error type).
     #[error(
-        "the Fisher information of the fit is singular: a parameter does not move the outputs there"
+        "the Fisher information of the fit is singular: a parameter, or a combination of them, does not move the outputs there"
     )]
     SingularInformation,
     #[error(
@@ -1244,8 +1245,9 @@ impl SampleStepper {
                     }
                     return Some(());
                 }
-                // A joint stuck through part of the sample takes its stuck sub-steps by
-                // the windows that hold it stuck ([`SlipWindows::stuck`]).
+                // Every refused sample: the slip's windows around force-solved sub-steps,
+                // and (once a simulation has had enough stuck sub-steps,
+                // [`STUCK_WINDOWS_AFTER`]) the windows that hold a stuck joint stuck.
                 Err(cleared) if map.window_parts.is_some() => {
                     return map.sample_by_windows(sys, s, pa, pb, cleared, &mut self.pt);
                 }
@@ -1338,8 +1340,9 @@ struct SlipSampleMap {
     held_substeps: usize,
 }
 
-/// Samples' worth of sub-steps (`× L`) that the force solve must have ended with a friction
-/// stuck before a simulation builds the stuck windows ([`SlipWindows::stuck`]). Their build
+/// Samples' worth of sub-steps (`× L`) that the force solve must have begun and ended with a
+/// friction stuck (those a stuck window could have taken) before a simulation tries the
+/// stuck windows ([`SlipWindows::stuck`]). Their build
 /// costs about as much as 4L force-solved sub-steps (about 0.2 ms on the paper model at 64
 /// sub-steps, measured by `perf`: 3.7 % of a Coulomb record's identification, which has
 /// ~160 stuck sub-steps a simulation and gained less than that); a joint stuck in most
@@ -1380,15 +1383,17 @@ const MAX_WINDOW_MAP_BYTES: usize = 8 << 20;
 struct SlipWindows {
     /// Per lag `l = 1…L`, the window's map of [`Self::input`]: `[Tˡ S_l V_l B_l]` side by
     /// side (`3n × (3n + 2 ne + q)`), or only `[S_l V_l B_l]` where the `L` powers of `T`
-    /// would take more than [`MAX_WINDOW_MAP_BYTES`] (then [`Self::powers`] step the state).
+    /// would take more than [`MAX_WINDOW_MAP_BYTES`], and always for the stuck windows
+    /// ([`Self::stuck`]; then [`Self::powers`] step the state).
     lag_maps: Vec<DMatrix<f64>>,
     /// `T^(2ᵏ)`, k = 0, 1, … while `2ᵏ ≤ L`, when `lag_maps` hold no powers: `Tˡ x` in at
     /// most `log₂ L + 1` products; each square made when a window first needs it. Empty
     /// otherwise.
     powers: Vec<DMatrix<f64>>,
-    /// The slip test's rows, lag `m = 1…L` and friction `i` at row `(m − 1) r + i`: the
-    /// friction's `δ` (or `δ̇`) row times `[Tᵐ S_m V_m B_m]`, a map of [`Self::input`];
-    /// stored transposed (a row per column), read in order up to the first row not cleared.
+    /// The test's rows, lag `m = 1…L` and friction `i` at row `(m − 1) r + i`: a slipping
+    /// friction's `δ` (or `δ̇`) row times `[Tᵐ S_m V_m B_m]`, a stuck one's force `λ` at
+    /// that sub-step ([`Self::stuck`]), maps of [`Self::input`]; stored transposed (a row
+    /// per column), read in order up to the first row not cleared.
     check_rows: DMatrix<f64>,
     /// Per check row: the absolute row sums of its four blocks (its round-off scale).
     row_sums: Vec<[f64; 4]>,
@@ -1448,8 +1453,8 @@ impl SlipWindows {
     }
 
     /// The windows of the frictions `stuck` held stuck (the others slipping as in
-    /// [`Self::new`]); `None` when their constraint cannot be solved for (two on one
-    /// connection). They step the state by the powers `T^(2ᵏ)` (no `L` powers of `T`):
+    /// [`Self::new`]); `None` when their constraint cannot be solved for (a singular
+    /// compliance `S Q_b E`) or its maps are not finite. They step the state by the powers `T^(2ᵏ)` (no `L` powers of `T`):
     /// under the Newmark sub-step a stuck joint's force alternates from one sub-step to the
     /// next (the constraint on `δ` or `δ̇` flips the connection's acceleration), so its
     /// stuck runs are short — on a Coulomb record stuck in most samples, half the windows
@@ -1716,9 +1721,11 @@ impl SlipWindows {
         self.powered.copy_from(&self.input.rows(0, dim));
         let needed = (usize::BITS - l.leading_zeros()) as usize;
         while self.powers.len() < needed {
-            let Some(last) = self.powers.last() else {
-                return;
-            };
+            // (`powers` holds `T` itself whenever `lag_maps` hold no powers.)
+            let last = self
+                .powers
+                .last()
+                .expect("the window's powers start with T");
             let square = product(last, last);
             self.powers.push(square);
         }
@@ -2087,7 +2094,7 @@ impl SlipSampleMap {
         pa: &[f64],
         pb: &[f64],
     ) -> usize {
-        if self.stuck_solves < self.stuck_windows_after {
+        if self.stuck_windows.is_empty() || self.stuck_solves < self.stuck_windows_after {
             return 0;
         }
         let L = self.substeps;
@@ -2712,7 +2719,7 @@ mod tests {
     /// 300 samples, most of them refused; the window maps holding every power of `T`, and
     /// stepping by `T^(2ᵏ)` as a large model does). The stuck windows are tried from the
     /// first stuck sub-step, and step some of them with every set of frictions stuck
-    /// (measured: 17–3,883 sub-steps a case; states within 2.1e-10).
+    /// (measured: 33–4,131 sub-steps a case; states within 2.1e-10).
     #[test]
     fn slip_windows_step_the_refused_samples_as_the_force_solve_does() {
         // And two frictions, on two connections, stuck and slipping in every combination.

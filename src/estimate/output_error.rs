@@ -73,9 +73,10 @@ pub struct OutputErrorReport {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub secant_disagreement: Option<f64>,
     /// The likelihood-ratio check of the final errors (`identify::likelihood`), per
-    /// parameter: the distance at which the cost along its profile line rises by 3.84, over
-    /// the stated 95 % half-width (1: the stated error held; above 1.01: widened to it;
-    /// `null`: that parameter not checked).
+    /// parameter: the distance at which the cost along its profile line rises by 3.84, or
+    /// the farthest value it takes inside that region on the other parameters' lines if
+    /// farther, over the stated 95 % half-width (1: the stated error held; above 1.01:
+    /// widened to it; `null`: that parameter not checked).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub likelihood_ratio_widths: Option<Vec<Option<f64>>>,
     /// The free run's parametric bootstrap, when asked for (`--bootstrap N`;

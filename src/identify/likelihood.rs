@@ -178,8 +178,10 @@ impl ParameterInterval {
         self.reach > self.below.distance.max(self.above.distance)
     }
 
+    /// Both ends crossed the level, and no other line found this parameter inside the
+    /// region as far out as the walk goes.
     pub fn reached(&self) -> bool {
-        self.below.reached && self.above.reached
+        self.below.reached && self.above.reached && self.reach < FARTHEST
     }
 
     pub fn lowest(&self) -> f64 {
@@ -279,13 +281,19 @@ pub(super) fn intervals(
         }
         Some((c, inside))
     });
-    // How far each parameter went at the points inside the region on the other lines.
+    // How far each parameter went at the points inside the region on the other lines: a
+    // friction level below 0 counts as 0 (the free run clips it there), and no farther than
+    // the walk itself goes ([`FARTHEST`], where the parameter is undetermined).
     let mut reach = vec![0.0f64; np];
     for (&(j, _), found) in ends.iter().zip(&crossings) {
         let Some((_, inside)) = found else { continue };
         for point in inside {
             for i in (0..np).filter(|&i| i != j) {
-                let d = (point[i] - values[i]).abs() / errors[i];
+                let at = match basis.get(i) {
+                    Some(Basis::SignU | Basis::SignV) => point[i].max(0.0),
+                    _ => point[i],
+                };
+                let d = ((at - values[i]).abs() / errors[i]).min(FARTHEST);
                 if d.is_finite() {
                     reach[i] = reach[i].max(d);
                 }
