@@ -1701,7 +1701,7 @@ pub fn refine(
             pred.project_out_initial_state(&mut w.cols);
         }
     }
-    let (mut se, naive, lag) = sandwich(&J, m).ok_or(SimulateError::Singular)?;
+    let (mut se, naive, lag) = sandwich(&J, m).ok_or(SimulateError::SingularInformation)?;
     // At rest, the errors from the measurement noise through the observer (see
     // [`noise_driven_errors`]); a record in motion (the start state concentrated out of the
     // innovations) and a repeating or smooth excitation (`Wanted`) keep the lag window.
@@ -2106,7 +2106,7 @@ fn noise_bias(
     // friction by correlation alone put it 9 errors off on the 480× record of the table
     // (ACCURACY.md), where holding it leaves it where the data put it (0.06 errors).
     let F = DMatrix::from_fn(k, k, |a, b| information[(scored[a], scored[b])]);
-    let inv = scaled_inverse(&F).ok_or(SimulateError::Singular)?;
+    let inv = scaled_inverse(&F).ok_or(SimulateError::SingularInformation)?;
     let g = DVector::from_fn(k, |a, _| {
         (0..samples).map(|i| scores[i * k + a]).sum::<f64>()
     });
