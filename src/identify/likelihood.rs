@@ -281,12 +281,37 @@ pub(super) fn intervals(
         }
         Some((c, inside))
     });
-    // How far each parameter went at the points inside the region on the other lines: a
-    // friction level below 0 counts as 0 (the free run clips it there), and no farther than
-    // the walk itself goes ([`FARTHEST`], where the parameter is undetermined).
+    let lines = ends
+        .iter()
+        .zip(&crossings)
+        .filter_map(|(&(j, _), found)| found.as_ref().map(|(_, inside)| (j, inside.as_slice())));
+    let reach = reach_from_other_lines(lines, values, errors, &basis);
+    Ok(crossings
+        .chunks(2)
+        .zip(reach)
+        .map(|(c, reach)| {
+            Some(ParameterInterval {
+                below: c[0].as_ref()?.0,
+                above: c[1].as_ref()?.0,
+                reach,
+            })
+        })
+        .collect())
+}
+
+/// How far each parameter went, in its stated errors, at the points inside the region on
+/// the other parameters' lines (`(line's parameter, its points)`): a friction level below 0
+/// counts as 0 (the free run clips it there), and no farther than the walk itself goes
+/// ([`FARTHEST`], where the parameter is undetermined); 0 where no such point moved it.
+fn reach_from_other_lines<'a>(
+    lines: impl IntoIterator<Item = (usize, &'a [Vec<f64>])>,
+    values: &[f64],
+    errors: &[f64],
+    basis: &[Basis],
+) -> Vec<f64> {
+    let np = values.len();
     let mut reach = vec![0.0f64; np];
-    for (&(j, _), found) in ends.iter().zip(&crossings) {
-        let Some((_, inside)) = found else { continue };
+    for (j, inside) in lines {
         for point in inside {
             for i in (0..np).filter(|&i| i != j) {
                 let at = match basis.get(i) {
@@ -300,17 +325,7 @@ pub(super) fn intervals(
             }
         }
     }
-    Ok(crossings
-        .chunks(2)
-        .zip(reach)
-        .map(|(c, reach)| {
-            Some(ParameterInterval {
-                below: c[0].as_ref()?.0,
-                above: c[1].as_ref()?.0,
-                reach,
-            })
-        })
-        .collect())
+    reach
 }
 
 /// Gauss–Newton iterations of the profile fit (the other parameters at a fixed `θ_j`).
@@ -393,6 +408,37 @@ fn profile_cost(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The reach counts only the other lines' points, in the parameter's own stated errors;
+    /// a friction level found below 0 counts from 0 (the free run clips it there); and no
+    /// reach goes past the walk's farthest point.
+    #[test]
+    fn the_reach_is_measured_from_zero_for_a_friction_and_capped_at_the_walk() {
+        let basis = [Basis::SignV, Basis::U];
+        let values = [100.0, 1.0e5];
+        let errors = [10.0, 1.0e3];
+        // Line 0 (the friction's) moves the stiffness 3 errors: only the stiffness reaches.
+        let own = vec![vec![40.0, 1.03e5]];
+        let r = reach_from_other_lines([(0, own.as_slice())], &values, &errors, &basis);
+        assert_eq!(r[0], 0.0);
+        assert!((r[1] - 3.0).abs() < 1e-12, "{r:?}");
+        // Line 1 takes the friction to −50: counted at 0, 10 errors below the answer (not 15).
+        let below_zero = vec![vec![-50.0, 1.0e5]];
+        let r = reach_from_other_lines([(1, below_zero.as_slice())], &values, &errors, &basis);
+        assert!((r[0] - 10.0).abs() < 1e-12, "{r:?}");
+        assert_eq!(r[1], 0.0);
+        // A point far beyond the walk: capped at FARTHEST; the larger of two lines' reaches.
+        let far = vec![vec![100.0, 1.0e9]];
+        let near = vec![vec![130.0, 1.0e5]];
+        let r = reach_from_other_lines(
+            [(0, far.as_slice()), (1, near.as_slice())],
+            &values,
+            &errors,
+            &basis,
+        );
+        assert!((r[0] - 3.0).abs() < 1e-12, "{r:?}");
+        assert_eq!(r[1], FARTHEST);
+    }
 
     /// The widening reported for an interval held at the stated 1.96 is 1 exactly, for any
     /// stated error; the ratio of the implied to the stated error is not (it read
