@@ -28,6 +28,18 @@
 //! showed, and the answer's `u` was 5.5 errors off; 1.7 now (ACCURACY.md, fifty-fourth
 //! session).
 //!
+//! Why the restated noise levels, from the answer's cost, although the answer was fitted at
+//! the high-order-difference levels and is not that cost's minimum (on 1-DOF records at 1 %
+//! the walk meets costs Δχ² = 15–254 below it, which widens the errors: the Coulomb rows at
+//! 1 % cover 100 % where the sandwich alone covers 94–95 % on data finer than the model).
+//! Measured against it on the same records (ACCURACY.md, fifty-fifth session): the rise from
+//! the restated cost's minimum changed no row against the acceptance band; the rise of the
+//! answer's own cost against an adjusted level (3.84 × the stated over the cost's own
+//! variance) is blind to the valley the restated weighting reveals — seed 9815 came out 15
+//! errors off; the answer refitted at the restated levels breaks the 1-DOF rows on data
+//! finer than the model (34–63 % at 1 %), whose discretisation bias the right weighting
+//! exposes.
+//!
 //! Cost: each point is a profile fit of one free run at the start and, per Gauss–Newton
 //! step, `p − 1` secant runs and one or two trial runs — `2p` points (one at each end of
 //! each interval) when the stated errors hold, each end that does not a few more points.
