@@ -2086,11 +2086,12 @@ fn finish_with_output_error(
             && pass_answers[k].0 != values
         {
             let (from, e) = pass_answers[k].clone();
+            let from_scales = start_scales(&from, &e);
             let again = refine_global(
                 setup,
                 model,
                 &from,
-                &start_scales(&from, &e),
+                &from_scales,
                 exc,
                 resp,
                 sigma,
@@ -2105,7 +2106,7 @@ fn finish_with_output_error(
                         pass_answers.len()
                     ));
                 }
-                scales = start_scales(&from, &e);
+                scales = from_scales;
                 values = from;
                 refined = Ok(r);
             }

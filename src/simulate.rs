@@ -1505,7 +1505,6 @@ impl SlipWindows {
         // `W` and the slipping frictions' rows carried through the projected `Tʲ`.
         let mut w_state = W.clone();
         let mut slip_state = select.clone();
-        let step = t_held.clone();
         let levels = friction.iter().map(|f| f.2).collect();
         Some(Self::build(
             (&t_held, &qp_held, &qb_all_held),
@@ -1514,7 +1513,7 @@ impl SlipWindows {
             |j, before, lag, rows| {
                 // (One friction, or all stuck: no slipping rows to carry.)
                 let slipping = if rs < r {
-                    slip_state = product(&slip_state, &step);
+                    slip_state = product(&slip_state, &t_held);
                     product(select, &crate::dense::side_by_side(&lag))
                 } else {
                     DMatrix::zeros(r, lag.iter().map(|m| m.ncols()).sum())
@@ -1546,7 +1545,7 @@ impl SlipWindows {
                             .copy_from(&slipping.row(i));
                     }
                 }
-                w_state = product(&w_state, &step);
+                w_state = product(&w_state, &t_held);
             },
             (stuck.to_vec(), levels),
         ))
