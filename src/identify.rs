@@ -183,6 +183,28 @@ impl TestData {
         self.samples.len()
     }
 
+    /// The free run of `params` over this record with `substeps` model sub-steps per
+    /// sample: the output errors `(y − ŷ)/σ` normalised by the channels' noise levels
+    /// `sigma`, and their sum of squares (`estimate::output_error::residuals`).
+    pub(crate) fn free_run(
+        &self,
+        setup: &Setup,
+        model: &Model,
+        params: &[f64],
+        sigma: &[f64],
+        substeps: usize,
+    ) -> Result<(Vec<f64>, f64), crate::simulate::SimulateError> {
+        crate::estimate::output_error::residuals(
+            setup,
+            model,
+            params,
+            &self.excitation,
+            &self.response,
+            sigma,
+            substeps,
+        )
+    }
+
     pub fn is_empty(&self) -> bool {
         self.samples.is_empty()
     }
@@ -1691,16 +1713,8 @@ fn likeliest_pass_answer(
     answers: &[(Vec<f64>, Vec<f64>)],
 ) -> Option<usize> {
     let costs = crate::par::map(answers, |(values, _)| {
-        crate::estimate::output_error::residuals(
-            setup,
-            model,
-            values,
-            &data.excitation,
-            &data.response,
-            sigma,
-            opts.substeps,
-        )
-        .map_or(f64::INFINITY, |r| r.1)
+        data.free_run(setup, model, values, sigma, opts.substeps)
+            .map_or(f64::INFINITY, |r| r.1)
     });
     costs
         .iter()
@@ -2468,16 +2482,7 @@ fn residuals_not_white(
     substeps: usize,
 ) -> Option<String> {
     use crate::estimate::ml::{chi2_quantile_999, portmanteau};
-    let (r, _) = crate::estimate::output_error::residuals(
-        setup,
-        model,
-        values,
-        &data.excitation,
-        &data.response,
-        sigma,
-        substeps,
-    )
-    .ok()?;
+    let (r, _) = data.free_run(setup, model, values, sigma, substeps).ok()?;
     let m = sigma.len();
     let n = r.len() / m.max(1);
     let lags = 20.min(n / 10).max(1);

@@ -238,21 +238,10 @@ pub(super) fn intervals(
     sigma: &[f64],
     substeps: usize,
 ) -> Result<Vec<Option<ParameterInterval>>, String> {
-    use crate::estimate::output_error::{residuals, scaled_inverse};
+    use crate::estimate::output_error::scaled_inverse;
     let C = scaled_inverse(fisher)
         .ok_or("the Fisher information at the restated noise levels is singular")?;
-    let run = |p: &[f64]| {
-        residuals(
-            setup,
-            model,
-            p,
-            &data.excitation,
-            &data.response,
-            sigma,
-            substeps,
-        )
-        .ok()
-    };
+    let run = |p: &[f64]| data.free_run(setup, model, p, sigma, substeps).ok();
     let at_answer = run(values).ok_or("the answer's own free run failed")?.1;
     let basis = setup.param_basis();
     let np = values.len();

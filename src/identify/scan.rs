@@ -478,7 +478,6 @@ fn widen_for_other_candidates(
     candidates: &[Vec<f64>],
     result: &mut Identification,
 ) {
-    use crate::estimate::output_error::residuals;
     let Some((sub, c_end)) = result
         .output_error
         .as_ref()
@@ -501,15 +500,7 @@ fn widen_for_other_candidates(
         if !far {
             continue;
         }
-        let Ok((_, c)) = residuals(
-            setup,
-            model,
-            p,
-            &data.excitation,
-            &data.response,
-            sigma,
-            sub,
-        ) else {
+        let Ok((_, c)) = data.free_run(setup, model, p, sigma, sub) else {
             continue;
         };
         if (c / nobs - c_end) * nobs >= threshold {
@@ -626,7 +617,7 @@ fn rescan_whole_record(
     sigma: &[f64],
     result: &mut Identification,
 ) -> Option<Vec<f64>> {
-    use crate::estimate::output_error::{refine, residuals};
+    use crate::estimate::output_error::refine;
     let report = result.output_error.as_mut().filter(|r| r.accepted)?;
     let last = result.passes.last_mut()?;
     let j = setup
@@ -659,17 +650,9 @@ fn rescan_whole_record(
         })
         .collect();
     let costs = crate::par::map(&points, |p| {
-        residuals(
-            setup,
-            model,
-            p,
-            &data.excitation,
-            &data.response,
-            sigma,
-            sub,
-        )
-        .ok()
-        .map(|(_, c)| c)
+        data.free_run(setup, model, p, sigma, sub)
+            .ok()
+            .map(|(_, c)| c)
     });
     let mut lowest: Option<(Vec<f64>, f64)> = None;
     for (p, c) in points.into_iter().zip(costs) {
@@ -876,19 +859,10 @@ pub(super) fn identify_from_scan(
         .iter()
         .any(|b| matches!(b, Basis::SignU | Basis::SignV))
     {
-        use crate::estimate::output_error::residuals;
         let whole = |p: &[f64]| {
-            residuals(
-                setup,
-                model,
-                p,
-                &data.excitation,
-                &data.response,
-                sigma,
-                sub,
-            )
-            .map(|r| r.1)
-            .unwrap_or(f64::INFINITY)
+            data.free_run(setup, model, p, sigma, sub)
+                .map(|r| r.1)
+                .unwrap_or(f64::INFINITY)
         };
         let mut best = whole(&start);
         let others = grid_candidates(setup, model, &basis, &start, exc, resp, sigma, sub);

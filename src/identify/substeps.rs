@@ -44,7 +44,7 @@ pub(super) fn raise_substeps(
     mut r: crate::estimate::output_error::Refined,
     notes: &mut Vec<String>,
 ) -> crate::estimate::output_error::Refined {
-    use crate::estimate::output_error::{refine_global, residuals};
+    use crate::estimate::output_error::refine_global;
     let nobs = (data.len() * sigma.len()) as f64;
     // A linear law costs one composed map per sample whatever the sub-steps: only the 8×
     // cap applies.
@@ -136,7 +136,7 @@ pub(super) fn raise_substeps(
             points
                 .iter()
                 .filter_map(|(p, _)| {
-                    residuals(setup, model, p, &data.excitation, &data.response, sigma, l)
+                    data.free_run(setup, model, p, sigma, l)
                         .ok()
                         .map(|(_, c2)| c2 / nobs)
                 })
@@ -430,15 +430,7 @@ pub(super) fn raise_substeps(
     let more = sub * 2;
     if !settled
         && (linear || data.len() * more <= 2 * MAX_RAISED_STEPS)
-        && let Ok((_, c2)) = residuals(
-            setup,
-            model,
-            &r.values,
-            &data.excitation,
-            &data.response,
-            sigma,
-            more,
-        )
+        && let Ok((_, c2)) = data.free_run(setup, model, &r.values, sigma, more)
     {
         settled = r.report.cost_end - c2 / nobs <= significant;
     }
