@@ -210,9 +210,9 @@ fn long_record_scan_refines_a_candidate_inside_the_prefix_basin() {
 /// with 0.08 %); in both the truth's cost was lower by Δχ² ≈ 1,000–1,500. Seed 86 ended at
 /// +0.40 % (4.0 se) with 32 model sub-steps: doubling to 64 lowered the cost by Δχ² = 300,
 /// below the old raise threshold of 3σ of a χ² (465), and moves it to −0.04 %; the raise
-/// now takes a linear law's finer model at Δχ² > 1 (`identify::raise_substeps`). Now all
-/// three within 0.1 % (measured −0.038 %, −0.041 % and −0.006 %) with the truth inside the
-/// stated 95 % interval.
+/// now takes a linear law's finer model at Δχ² > 1 (`identify::substeps::raise_substeps`).
+/// Now all three within 0.1 % (measured −0.038 %, −0.041 % and −0.006 %) with the truth
+/// inside the stated 95 % interval.
 #[test]
 fn scan_reaches_narrow_true_basins_on_continuous_data() {
     use jointid::identify::{IdentifyOptions, identify};

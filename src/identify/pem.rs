@@ -568,7 +568,7 @@ pub(super) fn refine_by_prediction_error<'a>(
     // measured on the shipped case with 8-sub-step data, seed 6, it stayed at 1 sub-step
     // and the refinement fell back to the free-run output error (−6.4 %, 621 se).
     // From the setup's level even when the scan fallback refines at its prefix's likeliest
-    // (a finer one on a noisy prefix; see `identify::raise_substeps`).
+    // (a finer one on a noisy prefix; see `identify::substeps::raise_substeps`).
     let levels = doubling_levels(
         opts.coarsest_substeps.min(opts.substeps),
         MAX_PEM_LEVEL.max(opts.substeps),
