@@ -2550,7 +2550,7 @@ fn smooth_between_samples(
     sigma: &[f64],
     r: &mut crate::estimate::output_error::Refined,
 ) -> Option<(TestData, String)> {
-    use crate::estimate::output_error::{refine_global, residuals};
+    use crate::estimate::output_error::refine_global;
     if !r.report.accepted || data.len() < 3 {
         return None;
     }
@@ -2560,7 +2560,7 @@ fn smooth_between_samples(
         ..data.clone()
     };
     let cost = |d: &TestData, p: &[f64]| {
-        residuals(setup, model, p, &d.excitation, &d.response, sigma, sub)
+        d.free_run(setup, model, p, sigma, sub)
             .ok()
             .map(|(_, c)| c)
             .filter(|c| c.is_finite())

@@ -65,7 +65,7 @@ pub const NOISE_FLOOR_RELATIVE: f64 = 1e-7;
 /// The floor of a channel's noise std: `NOISE_FLOOR_RELATIVE` × its RMS (at least the
 /// smallest positive number, so it is always usable as a weight; 1 when the RMS is not
 /// finite). Also the least level the Kalman tuning may scale an estimated channel to
-/// (`identify::noise_scale_range`).
+/// (`identify::kalman_tuning::noise_scale_range`).
 pub fn noise_floor(rms: f64) -> f64 {
     if rms.is_finite() {
         (NOISE_FLOOR_RELATIVE * rms).max(f64::MIN_POSITIVE)

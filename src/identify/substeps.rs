@@ -1,8 +1,10 @@
 //! The free run's model sub-steps (`raise_substeps`): after the output-error refinement,
-//! the levels from the setup's up to [`MAX_RAISED_LEVEL`] are screened at the minima found,
-//! refined by continuation outward from the answer's, and the finest the likelihood cannot
-//! tell from the best is taken; where the sub-steps have not converged, the errors are
-//! widened to the last doubling's move. Moved out of `identify` whole.
+//! every doubling from the setup's level up to [`MAX_RAISED_LEVEL`] (or 8× the setup's),
+//! within the step budget, is tried — a law linear in the state refined afresh at each, any
+//! other screened at the minima found and then refined by continuation outward from the
+//! answer's level, the finest the likelihood cannot tell from the best taken; where the
+//! sub-steps have not converged, the errors are widened to the last doubling's move. Moved
+//! out of `identify` whole.
 
 use super::*;
 
