@@ -1911,6 +1911,18 @@ fn finish_with_output_error(
                     ));
                 }
                 let rep = &r.report;
+                if let Some(gain) = rep.frictionless_start_gain {
+                    result.notes.push(format!(
+                        "the prediction error, started again without friction (every friction level of the start set to 0), ended likelier by {gain:.1} in log-likelihood than from the residual-force estimate, under the same observer, and was taken: a descent stays in the basin it starts in, and the estimate's friction ({}) was another minimum",
+                        flat.iter()
+                            .zip(&keys)
+                            .zip(&values)
+                            .filter(|((b, _), _)| matches!(b, Basis::SignU | Basis::SignV))
+                            .map(|((_, k), v)| format!("`{k}` {v:.4e}"))
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    ));
+                }
                 if let Some(gain) = rep.smooth_excitation_gain {
                     result.notes.push(format!(
                         "the excitation was taken as smooth between samples (each sample's mean that of a cubic through its neighbours, not of the straight line): its innovation likelihood was higher by {gain:.1} at the start values (over the first {} samples); a force that is piecewise linear between samples would be the other way",

@@ -609,6 +609,10 @@ pub struct PredictionErrorReport {
     pub periodic_excitation: Option<(f64, usize)>,
     /// The parametric bootstrap, when asked for or automatic (`identify::pem::bootstrap`).
     pub bootstrap: Option<BootstrapReport>,
+    /// When the refinement from the start without friction was taken
+    /// (`identify::pem::frictionless_start`): how much likelier it ended than the one from
+    /// the residual-force estimate, in log-likelihood under the same observer.
+    pub frictionless_start_gain: Option<f64>,
 }
 
 /// What the parametric bootstrap of a prediction-error answer found: `replicates` records
@@ -1863,6 +1867,7 @@ pub fn refine(
             smooth_excitation_gain: None,
             periodic_excitation: None,
             bootstrap: None,
+            frictionless_start_gain: None,
             start_at_rest_tests: Vec::new(),
         },
         values: p,
