@@ -1882,6 +1882,9 @@ fn finish_with_output_error(
                 for (j, b) in flat.iter().enumerate() {
                     if matches!(b, Basis::SignU | Basis::SignV) && r.values[j] <= 0.0 {
                         let test = match r.bound_likelihood_ratio.get(j).copied().flatten() {
+                            _ if let Some(gain) = r.report.frictionless_start_gain => format!(
+                                "the refinement from the start's level ended less likely by {gain:.1} in log-likelihood (below)"
+                            ),
                             Some(lr) if lr < crate::estimate::prediction_error::FLAT_BOUND_LR => {
                                 format!(
                                     "the innovations fit that level about as well (likelihood-ratio statistic {lr:.2} < {}): every value between is an answer, and every interval is widened to reach that point",
@@ -1913,7 +1916,7 @@ fn finish_with_output_error(
                 let rep = &r.report;
                 if let Some(gain) = rep.frictionless_start_gain {
                     result.notes.push(format!(
-                        "the prediction error, started again without friction (every friction level of the start set to 0), ended likelier by {gain:.1} in log-likelihood than from the residual-force estimate, under the same observer, and was taken: a descent stays in the basin it starts in, and the estimate's friction ({}) was another minimum",
+                        "the prediction error, refined again from the law without friction (its other terms fitted first with every friction level at 0, a likelier answer than the one from the residual-force estimate), ended likelier by {gain:.1} in log-likelihood than from the estimate, under the same observer, and was taken: a descent stays in the basin it starts in, and the estimate's friction ({}) was another minimum",
                         flat.iter()
                             .zip(&keys)
                             .zip(&values)

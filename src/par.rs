@@ -130,6 +130,31 @@ pub fn map_with<T: Sync, R: Send>(
     all.into_iter().map(|(_, r)| r).collect()
 }
 
+/// `(main(), beside())`: `main` on the calling thread with its threads as they are, and
+/// `beside`, a short side job, on one more thread of its own whose maps run one item after
+/// the other (a share of one). Why: the side job fills the gaps a parallel `main` leaves
+/// (its sequential steps: a descent's trials) instead of taking half the cores from it for
+/// its whole length, as a two-item [`map`] would. The results are those of the sequential
+/// calls. Without a second thread (`JOINTID_THREADS=1`, or inside an item with a share of
+/// one) the two run one after the other on the calling thread.
+pub fn join_beside<A: Send, B: Send>(
+    main: impl FnOnce() -> A + Send,
+    beside: impl FnOnce() -> B + Send,
+) -> (A, B) {
+    if available() <= 1 {
+        return (main(), beside());
+    }
+    std::thread::scope(|scope| {
+        let side = scope.spawn(|| {
+            let _inside = InParallelMap::enter(1, 1);
+            beside()
+        });
+        let a = main();
+        let b = side.join().unwrap_or_else(|e| std::panic::resume_unwind(e));
+        (a, b)
+    })
+}
+
 /// Wall time of the identification's phases, printed to stderr when `JOINTID_TIMING` is set
 /// (how BENCHMARKS.md splits an identification; no cost when unset). `phase("name", t0)`
 /// prints the time since `t0`.
@@ -176,6 +201,34 @@ mod tests {
             0,
             "nor keep a thread share after the panic"
         );
+    }
+
+    /// `join_beside` gives the same results as the two calls in turn; its side job's maps
+    /// run on one thread (its own), and the calling thread's share is untouched.
+    #[test]
+    fn a_side_job_runs_its_maps_on_its_own_thread_and_returns_both_results() {
+        let ((main_sum, main_share), (side_threads, side_sum)) = join_beside(
+            || {
+                (
+                    map(&[1u64, 2, 3], |x| x * x).iter().sum::<u64>(),
+                    available(),
+                )
+            },
+            || {
+                let ids = map(&[0u8; 6], |_| std::thread::current().id());
+                let mut distinct = ids.clone();
+                distinct.sort_by_key(|id| format!("{id:?}"));
+                distinct.dedup();
+                (
+                    distinct.len(),
+                    map(&[4u64, 5], |x| x + 1).iter().sum::<u64>(),
+                )
+            },
+        );
+        assert_eq!((main_sum, side_sum), (14, 11));
+        assert_eq!(side_threads, 1);
+        assert_eq!(main_share, available());
+        assert_eq!(THREAD_SHARE.with(Cell::get), 0);
     }
 
     /// A map inside an item of a parallel map gets that item's share of the threads: two

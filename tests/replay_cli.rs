@@ -527,9 +527,10 @@ fn assert_within(v: &serde_json::Value, seed: &str, k: f64) {
 /// The spring setup (the paper's four-term basis, no friction in the truth), 8-sub-step
 /// data at 100 % noise, seed 10043: the passes settle on a friction of 12.8 kN that sticks
 /// in half the samples, and the prediction error's descent from there ended at `sign(u)`
-/// 4,826 ± 650 N with the spring −4.4 % (6.9 errors off), no note. Started again without
-/// the friction under the same observer it ends likelier by 10.3 and is taken: the spring
-/// within 0.5 % and every parameter within 2 errors, and a note says so.
+/// 4,826 ± 650 N with the spring −4.4 % (6.9 errors off), no note. The law without friction,
+/// fitted under the same observer, is likelier than that answer; refined again from there
+/// the full law ends likelier by 10.3 and is taken: the spring within 0.5 % and every
+/// parameter within 2 errors, and a note says so.
 #[test]
 fn a_friction_minimum_the_truth_does_not_have_is_left_for_the_likelier_start_without_it() {
     let dir = tempfile::tempdir().unwrap();
@@ -548,7 +549,7 @@ fn a_friction_minimum_the_truth_does_not_have_is_left_for_the_likelier_start_wit
     let k = spring["value"].as_f64().unwrap();
     assert!((k / 3.0e5 - 1.0).abs() < 0.005, "spring {k}");
     assert!(
-        says(&v, "started again without friction"),
+        says(&v, "refined again from the law without friction"),
         "no note of the second start: {}",
         v["notes"]
     );

@@ -1343,6 +1343,11 @@ pub enum Wanted {
     /// the wide error secant (8 predictor runs of a four-parameter law, ~12 % of a
     /// replicate) and the bound rule's look back at the start's friction level.
     Values,
+    /// The descent's end alone (after the polish): no error secant, no noise shift, no
+    /// errors (`std_errors` and `naive` are NaN). For a comparison of likelihoods between
+    /// descents (`identify::pem`, the law without friction), whose winner is refined again
+    /// for its errors.
+    Descent,
 }
 
 /// Levenberg–Marquardt on the innovation cost from `start` with the observer built at
@@ -1646,6 +1651,37 @@ pub fn refine(
         polished += 1;
     }
     iterations += polished;
+    if wanted == Wanted::Descent {
+        let n = p.len();
+        return Ok(PemRefined {
+            refined: p.clone(),
+            bound_likelihood_ratio: vec![None; n],
+            initial_state: pred.initial.clone(),
+            report: PredictionErrorReport {
+                force_std,
+                spectral_radius: pred.spectral_radius(),
+                substeps,
+                iterations,
+                cost_start: cost_start.unwrap_or(f64::NAN),
+                cost_end: J.cost / nobs,
+                whole_record_steps,
+                hac_lag: 0,
+                noise_driven_errors: false,
+                sandwich_ratio: vec![f64::NAN; n],
+                secant_disagreement: None,
+                noise_shift: None,
+                noise_shift_failure: None,
+                smooth_excitation_gain: None,
+                periodic_excitation: None,
+                bootstrap: None,
+                frictionless_start_gain: None,
+                start_at_rest_tests: Vec::new(),
+            },
+            values: p,
+            std_errors: vec![f64::NAN; n],
+            naive: vec![f64::NAN; n],
+        });
+    }
     // The errors from secants at least as wide as the error itself (see `ERROR_SECANTS`): a
     // narrower one sees single jumps of the rough cost and gave errors varying 10× between
     // seeds.

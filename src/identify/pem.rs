@@ -280,11 +280,15 @@ pub(super) fn pem_undetermined(
         // On the bound at the descent's end (not only after a removed shift, see
         // `PemRefined::refined`).
         let descended_to_bound = r.refined.get(j).is_none_or(|x| *x <= 0.0);
+        // (An answer refined from the nested model without friction is likelier than the
+        // one from the start's level by `frictionless_start_gain`: the innovations did
+        // determine the bound against it.)
         if friction
             && *v <= 0.0
             && descended_to_bound
             && s0 > 2.0 * e0
             && likelihood_ratio.is_none()
+            && r.report.frictionless_start_gain.is_none()
         {
             return Some(format!(
                 "`{}` ended on its bound 0 (observer process-noise force {:.3e} N per sample) although its start (the residual-force estimate, or the session's answer so far for a window) was {s0:.4e} ± {e0:.3e}: the observer absorbed the friction and the innovations do not determine it",
@@ -521,41 +525,61 @@ pub(super) fn motion_behind_misfit(
     .flatten()
 }
 
-/// The start with every friction level (`sign(u)`, `sign(v)`) set to 0, the other
-/// parameters as they are; `None` when the start has no friction above 0.
+/// The nested model without friction: the setup with every `sign(u)` and `sign(v)` term
+/// taken out of its connections' bases, and per parameter of it its index among the full
+/// setup's parameters. `None` when the setup has no friction term, or when a connection
+/// would be left with no basis function (a connection of friction alone).
 ///
-/// Why a second start: the innovation likelihood has a minimum wherever a friction level
-/// makes the model's joint stick where the data's does, and the descent from the
-/// residual-force estimate stays in that basin. Measured (fifty-fifth session, spring setup
-/// whose truth has no friction, seed 10043, 8-sub-step data, 100 % noise): the passes
-/// settled on a friction of 4.8 kN stuck in 956 of 2,000 samples, refined to `sign(u)`
-/// 4,826 ± 650 N and the spring −4.4 % (6.9 errors off); from the start without friction
-/// the same observer's descent ends at 25 ± 490 N and −0.11 %, likelier by 10.3. A start
-/// with the friction doubled instead was not needed by any record measured.
-fn frictionless_start(setup: &Setup, start: &[f64]) -> Option<Vec<f64>> {
-    let basis = setup.param_basis();
+/// Why: an answer of the full law must be at least as likely as the best answer with the
+/// friction at 0 (the nested model's parameters are the full law's with the friction on its
+/// bound), and the descent from the residual-force estimate can miss that: the innovation
+/// likelihood has a minimum wherever a friction level makes the model's joint stick where
+/// the data's does, and the descent stays in the basin it starts in. Measured (fifty-fifth
+/// session, spring setup whose truth has no friction, seed 10043, 8-sub-step data, 100 %
+/// noise): the passes settled on a friction of 12.8 kN stuck in 956 of 2,000 samples, the
+/// descent ended at `sign(u)` 4,826 ± 650 N with the spring −4.4 % (6.9 errors off); the
+/// descent from the start without friction, under the same observer, ends at 25 ± 490 N and
+/// −0.11 %, likelier by 10.3. Without friction the law is linear in the state, and its
+/// descent runs one composed map per sample: a fraction of the full descent's time.
+fn without_friction(setup: &Setup) -> Option<(Setup, Vec<usize>)> {
     let is_friction = |b: &Basis| matches!(b, Basis::SignU | Basis::SignV);
-    basis
-        .iter()
-        .zip(start)
-        .any(|(b, v)| is_friction(b) && *v > 0.0)
-        .then(|| {
-            basis
-                .iter()
-                .zip(start)
-                .map(|(b, v)| if is_friction(b) { 0.0 } else { *v })
+    let basis = setup.param_basis();
+    if !basis.iter().any(is_friction) {
+        return None;
+    }
+    let mut nested = setup.clone();
+    for c in &mut nested.connections {
+        let keep: Vec<bool> = c.basis.iter().map(|b| !is_friction(b)).collect();
+        if !keep.contains(&true) {
+            return None;
+        }
+        let kept = |xs: &[f64]| -> Vec<f64> {
+            xs.iter()
+                .zip(&keep)
+                .filter(|(_, k)| **k)
+                .map(|(x, _)| *x)
                 .collect()
-        })
+        };
+        let (initial, truth) = (kept(&c.initial), c.truth.as_deref().map(kept));
+        (c.initial, c.truth) = (initial, truth);
+        c.basis.retain(|b| !is_friction(b));
+    }
+    let kept = (0..basis.len())
+        .filter(|&j| !is_friction(&basis[j]))
+        .collect();
+    Some((nested, kept))
 }
 
-/// How much likelier (log-likelihood) the refinement from the start without friction must
-/// end to be taken: half the 95 % point of χ²₁, the likelihood-ratio margin of one
-/// parameter. Below it the two ends are equally good answers and the residual-force
-/// estimate's basin is kept. Measured (fresh seeds 10101–10150, 900 records of the
-/// friction and spring setups, data sub-steps 1, 8, 64, noise 1, 10, 100 %): the two ends
-/// differed by at most 1.25 on the friction setup (truth 3 kN); taking the likelier at any
-/// margin moved the friction setup's answers by up to 1.3 errors either way, the rows'
-/// coverage by at most 2 points either way, and nothing was gained.
+/// How much likelier (log-likelihood) than the answer the nested model without friction
+/// must be for the full law to be refined again from it, and how much likelier that refit
+/// must end to be taken: half the 95 % point of χ²₁, the likelihood-ratio margin of one
+/// parameter. Below it the two are equally good answers and the residual-force estimate's
+/// basin is kept. Measured (fresh seeds 10101–10150, 900 records of the friction and spring
+/// setups, data sub-steps 1, 8, 64, noise 1, 10, 100 %, a descent from the start without
+/// friction on every record): it ended within 2 of the answer's log-likelihood on 896, the
+/// friction setup's (truth 3 kN) at most 1.25 above; taking the likelier at any margin moved
+/// the friction setup's answers by up to 1.3 errors either way, the rows' coverage by at
+/// most 2 points either way, and nothing was gained.
 const FRICTIONLESS_START_MARGIN: f64 = 1.92;
 
 /// Prediction-error refinement for laws with a `sign(u)` term (see
@@ -796,59 +820,63 @@ pub(super) fn refine_by_prediction_error<'a>(
         Wanted::ValuesAndErrors
     };
     let t0 = std::time::Instant::now();
-    let mut r = refine(
-        setup,
-        model,
-        start,
-        scales,
-        exc,
-        resp,
-        sigma,
-        sub,
-        force_std.max(floor),
-        opts.output_error_iterations,
-        opts.initial_state.as_deref(),
-        wanted,
-    )?;
-    crate::par::phase("pem refine", t0);
-    // The descent stays in the basin it starts in (see [`frictionless_start`]): the
-    // refinement from the start without its friction, under the same observer, is taken
-    // when it ends likelier by more than [`FRICTIONLESS_START_MARGIN`].
-    if let Some(z) = frictionless_start(setup, start) {
+    let fs = force_std.max(floor);
+    let initial = opts.initial_state.as_deref();
+    let descend = |setup: &Setup, from: &[f64], scales: &[f64], wanted: Wanted| {
+        refine(
+            setup,
+            model,
+            from,
+            scales,
+            exc,
+            resp,
+            sigma,
+            sub,
+            fs,
+            opts.output_error_iterations,
+            initial,
+            wanted,
+        )
+    };
+    // The answer against the nested model without friction (see [`without_friction`]),
+    // refined under the same observer from the start's other values (its descent alone,
+    // beside the full law's: a law without friction is linear, a fraction of the time):
+    // when that is likelier by more than [`FRICTIONLESS_START_MARGIN`], the full law is
+    // refined again from it and the result taken if it is likelier still. A descent that
+    // fails leaves the answer.
+    let ll = |p: &[f64]| pem_log_likelihood(setup, model, data, sigma, p, sub, initial, fs);
+    let nested = without_friction(setup);
+    let (r, from_nested) = crate::par::join_beside(
+        || descend(setup, start, scales, wanted),
+        || {
+            let (nested, kept) = nested.as_ref()?;
+            let pick = |xs: &[f64]| -> Vec<f64> { kept.iter().map(|&j| xs[j]).collect() };
+            let rn = descend(nested, &pick(start), &pick(scales), Wanted::Descent).ok()?;
+            let mut from = vec![0.0; start.len()];
+            for (&j, v) in kept.iter().zip(&rn.refined) {
+                from[j] = *v;
+            }
+            let likelihood = ll(&from);
+            Some((from, likelihood))
+        },
+    );
+    let mut r = r?;
+    crate::par::phase("pem refine (and the law without friction)", t0);
+    if let Some((from, nested_likelihood)) = from_nested {
         let t0 = std::time::Instant::now();
-        let fs = force_std.max(floor);
-        let initial = opts.initial_state.as_deref();
-        let from_zero = |wanted: Wanted| {
-            refine(
-                setup,
-                model,
-                &z,
-                scales,
-                exc,
-                resp,
-                sigma,
-                sub,
-                fs,
-                opts.output_error_iterations,
-                initial,
-                wanted,
-            )
-        };
-        // The values alone first (the same values to the bit, ~12 % fewer runs); the errors
-        // only for the one taken. A descent that fails from there leaves the first answer.
-        if let Ok(rz) = from_zero(Wanted::Values) {
-            let ll = |p: &[f64]| pem_log_likelihood(setup, model, data, sigma, p, sub, initial, fs);
-            let gain = ll(&rz.refined) - ll(&r.refined);
-            if gain > FRICTIONLESS_START_MARGIN
-                && let Ok(rz) = from_zero(wanted)
-            {
+        let ll_answer = ll(&r.refined);
+        if nested_likelihood - ll_answer > FRICTIONLESS_START_MARGIN
+            && let Ok(rz) = descend(setup, &from, scales, wanted)
+        {
+            let gain = ll(&rz.refined) - ll_answer;
+            if gain > FRICTIONLESS_START_MARGIN {
                 r = rz;
                 r.report.frictionless_start_gain = Some(gain);
-                zero_start = z;
+                zero_start = from;
                 start = &zero_start;
             }
         }
-        crate::par::phase("pem frictionless start", t0);
+        crate::par::phase("pem against the law without friction", t0);
     }
     // A start in motion that the first sample did not show, tested at the refined values
     // (at the start values a parameter error leaves a transient that a start state also
@@ -1379,16 +1407,25 @@ mod tests {
     }
 
     #[test]
-    fn the_frictionless_start_zeroes_only_the_friction_and_only_when_there_is_one() {
+    fn the_nested_model_drops_only_the_friction_and_only_when_something_is_left() {
         let setup = shipped_friction_setup();
         // sign(u), u, const(100), v
+        let (nested, kept) = without_friction(&setup).unwrap();
+        assert_eq!(kept, vec![1, 2, 3]);
         assert_eq!(
-            frictionless_start(&setup, &[1.2e4, 2.9e5, -3.0, 0.1]),
-            Some(vec![0.0, 2.9e5, -3.0, 0.1])
+            nested.param_basis(),
+            vec![Basis::U, Basis::Const(100.0), Basis::V]
         );
-        // A friction already at 0 (or below, which the bound takes to 0): no second start.
-        assert_eq!(frictionless_start(&setup, &[0.0, 2.9e5, -3.0, 0.1]), None);
-        assert_eq!(frictionless_start(&setup, &[-5.0, 2.9e5, -3.0, 0.1]), None);
+        assert_eq!(nested.connections[0].truth, Some(vec![3.0e5, 0.0, 0.0]));
+        assert_eq!(nested.connections[0].initial, vec![0.0, 0.0, 0.0]);
+        // No friction term: no nested model.
+        assert!(without_friction(&nested).is_none());
+        // A connection of friction alone would be left with nothing.
+        let mut alone = setup.clone();
+        alone.connections[0].basis = vec![Basis::SignU];
+        alone.connections[0].initial = vec![0.0];
+        alone.connections[0].truth = Some(vec![3000.0]);
+        assert!(without_friction(&alone).is_none());
     }
 
     /// The shipped friction setup (`recordings/two-beam-friction.toml`).
