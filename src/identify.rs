@@ -1882,9 +1882,14 @@ fn finish_with_output_error(
                 for (j, b) in flat.iter().enumerate() {
                     if matches!(b, Basis::SignU | Basis::SignV) && r.values[j] <= 0.0 {
                         let test = match r.bound_likelihood_ratio.get(j).copied().flatten() {
-                            _ if let Some(gain) = r.report.frictionless_start_gain => format!(
-                                "the refinement from the start's level ended less likely by {gain:.1} in log-likelihood (below)"
-                            ),
+                            _ if let Some(f) = r.report.frictionless_refit.as_ref()
+                                && f.replaced.get(j).is_some_and(|x| *x > 0.0) =>
+                            {
+                                format!(
+                                    "the answer refined from the start, {:.4e}, was less likely by {:.1} in log-likelihood (below)",
+                                    f.replaced[j], f.gain
+                                )
+                            }
                             Some(lr) if lr < crate::estimate::prediction_error::FLAT_BOUND_LR => {
                                 format!(
                                     "the innovations fit that level about as well (likelihood-ratio statistic {lr:.2} < {}): every value between is an answer, and every interval is widened to reach that point",
@@ -1914,16 +1919,25 @@ fn finish_with_output_error(
                     ));
                 }
                 let rep = &r.report;
-                if let Some(gain) = rep.frictionless_start_gain {
+                if let Some(f) = rep.frictionless_refit.as_ref() {
                     result.notes.push(format!(
-                        "the prediction error, refined again from the law without friction (its other terms fitted first with every friction level at 0, a likelier answer than the one from the residual-force estimate), ended likelier by {gain:.1} in log-likelihood than from the estimate, under the same observer, and was taken: a descent stays in the basin it starts in, and the estimate's friction ({}) was another minimum",
+                        "the answer refined from the start ({}) was less likely than the law without friction's (its other terms fitted with every friction level at 0, under the same observer{}): the full law refined again from there ended likelier by {:.1} in log-likelihood and was taken; a descent stays in the basin it starts in, and the first answer's friction was another minimum",
                         flat.iter()
                             .zip(&keys)
-                            .zip(&values)
+                            .zip(&f.replaced)
                             .filter(|((b, _), _)| matches!(b, Basis::SignU | Basis::SignV))
                             .map(|((_, k), v)| format!("`{k}` {v:.4e}"))
                             .collect::<Vec<_>>()
-                            .join(", ")
+                            .join(", "),
+                        if data.len() > crate::identify::pem::FORCE_TUNE_SAMPLES {
+                            format!(
+                                ", fitted on the first {} samples and likelier on those and on the whole record",
+                                crate::identify::pem::FORCE_TUNE_SAMPLES
+                            )
+                        } else {
+                            String::new()
+                        },
+                        f.gain
                     ));
                 }
                 if let Some(gain) = rep.smooth_excitation_gain {

@@ -7,7 +7,7 @@
 //! code on its own data), only sooner.
 //!
 //! The number of threads is `JOINTID_THREADS` if set (≥ 1), else the machine's available
-//! parallelism. `jointid live` identifies its windows on a worker thread while the stream
+//! parallelism ([`join_beside`] adds one thread for a short side job). `jointid live` identifies its windows on a worker thread while the stream
 //! runs, so these threads share the cores with its stepper (BENCHMARKS.md: residual latency
 //! p99 15–20 ms instead of 2 ms on 2 cores); `JOINTID_THREADS=1` keeps an identification on
 //! one core.
@@ -227,6 +227,13 @@ mod tests {
         );
         assert_eq!((main_sum, side_sum), (14, 11));
         assert_eq!(side_threads, 1);
+        // With a second thread the side job runs on its own; a panic in it reaches the
+        // caller.
+        let caller = std::thread::current().id();
+        let (_, side) = join_beside(|| (), || std::thread::current().id());
+        assert_eq!(side != caller, available() > 1);
+        let caught = std::panic::catch_unwind(|| join_beside(|| 1, || -> u8 { panic!("planted") }));
+        assert!(caught.is_err());
         assert_eq!(main_share, available());
         assert_eq!(THREAD_SHARE.with(Cell::get), 0);
     }

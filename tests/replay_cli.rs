@@ -549,7 +549,7 @@ fn a_friction_minimum_the_truth_does_not_have_is_left_for_the_likelier_start_wit
     let k = spring["value"].as_f64().unwrap();
     assert!((k / 3.0e5 - 1.0).abs() < 0.005, "spring {k}");
     assert!(
-        says(&v, "refined again from the law without friction"),
+        says(&v, "less likely than the law without friction's"),
         "no note of the second start: {}",
         v["notes"]
     );

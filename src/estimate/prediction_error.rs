@@ -609,10 +609,20 @@ pub struct PredictionErrorReport {
     pub periodic_excitation: Option<(f64, usize)>,
     /// The parametric bootstrap, when asked for or automatic (`identify::pem::bootstrap`).
     pub bootstrap: Option<BootstrapReport>,
-    /// When the refinement from the start without friction was taken
-    /// (`identify::pem::frictionless_start`): how much likelier it ended than the one from
-    /// the residual-force estimate, in log-likelihood under the same observer.
-    pub frictionless_start_gain: Option<f64>,
+    /// When the refinement from the law without friction's answer was taken
+    /// (`identify::pem::without_friction`): what it replaced and by how much.
+    pub frictionless_refit: Option<FrictionlessRefit>,
+}
+
+/// A prediction-error answer replaced by the refinement from the law without friction's
+/// answer (`identify::pem::without_friction`).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct FrictionlessRefit {
+    /// How much likelier the refit ended than the replaced answer, in log-likelihood under
+    /// the same observer, on the whole record.
+    pub gain: f64,
+    /// The replaced answer (the descent from the residual-force estimate), per parameter.
+    pub replaced: Vec<f64>,
 }
 
 /// What the parametric bootstrap of a prediction-error answer found: `replicates` records
@@ -1343,10 +1353,12 @@ pub enum Wanted {
     /// the wide error secant (8 predictor runs of a four-parameter law, ~12 % of a
     /// replicate) and the bound rule's look back at the start's friction level.
     Values,
-    /// The descent's end alone (after the polish): no error secant, no noise shift, no
-    /// errors (`std_errors` and `naive` are NaN). For a comparison of likelihoods between
-    /// descents (`identify::pem`, the law without friction), whose winner is refined again
-    /// for its errors.
+    /// The descent's end alone (after the polish): no error secant, no noise shift (so
+    /// `refined` and `values` are the descent's point, where the other variants' have the
+    /// noise shift removed), no errors (`std_errors`, `naive` and `sandwich_ratio` NaN, no
+    /// bound likelihood ratio), the start state not made explicit, `cost_end` the last point
+    /// run's. For the law without friction's answer (`identify::pem::without_friction`),
+    /// from which the full law is refined again when it is likelier.
     Descent,
 }
 
@@ -1674,7 +1686,7 @@ pub fn refine(
                 smooth_excitation_gain: None,
                 periodic_excitation: None,
                 bootstrap: None,
-                frictionless_start_gain: None,
+                frictionless_refit: None,
                 start_at_rest_tests: Vec::new(),
             },
             values: p,
@@ -1903,7 +1915,7 @@ pub fn refine(
             smooth_excitation_gain: None,
             periodic_excitation: None,
             bootstrap: None,
-            frictionless_start_gain: None,
+            frictionless_refit: None,
             start_at_rest_tests: Vec::new(),
         },
         values: p,

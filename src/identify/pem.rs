@@ -280,15 +280,20 @@ pub(super) fn pem_undetermined(
         // On the bound at the descent's end (not only after a removed shift, see
         // `PemRefined::refined`).
         let descended_to_bound = r.refined.get(j).is_none_or(|x| *x <= 0.0);
-        // (An answer refined from the nested model without friction is likelier than the
-        // one from the start's level by `frictionless_start_gain`: the innovations did
-        // determine the bound against it.)
+        // (An answer refined from the law without friction's that replaced one with this
+        // friction above 0 is likelier than it by more than half `FLAT_BOUND_LR`: the
+        // innovations did determine the bound against that level.)
+        let rejected_by_refit = r
+            .report
+            .frictionless_refit
+            .as_ref()
+            .is_some_and(|f| f.replaced.get(j).is_some_and(|x| *x > 0.0));
         if friction
             && *v <= 0.0
             && descended_to_bound
             && s0 > 2.0 * e0
             && likelihood_ratio.is_none()
-            && r.report.frictionless_start_gain.is_none()
+            && !rejected_by_refit
         {
             return Some(format!(
                 "`{}` ended on its bound 0 (observer process-noise force {:.3e} N per sample) although its start (the residual-force estimate, or the session's answer so far for a window) was {s0:.4e} ± {e0:.3e}: the observer absorbed the friction and the innovations do not determine it",
@@ -539,8 +544,9 @@ pub(super) fn motion_behind_misfit(
 /// noise): the passes settled on a friction of 12.8 kN stuck in 956 of 2,000 samples, the
 /// descent ended at `sign(u)` 4,826 ± 650 N with the spring −4.4 % (6.9 errors off); the
 /// descent from the start without friction, under the same observer, ends at 25 ± 490 N and
-/// −0.11 %, likelier by 10.3. Without friction the law is linear in the state, and its
-/// descent runs one composed map per sample: a fraction of the full descent's time.
+/// −0.11 %, likelier by 10.3. Without friction a law of `u`, `v`, `a` and `const` terms is
+/// linear in the state, and its descent runs one composed map per sample: a fraction of the
+/// full descent's time (other terms, e.g. `u^3` or a gap, keep the sub-steps).
 fn without_friction(setup: &Setup) -> Option<(Setup, Vec<usize>)> {
     let is_friction = |b: &Basis| matches!(b, Basis::SignU | Basis::SignV);
     let basis = setup.param_basis();
@@ -588,7 +594,9 @@ const FRICTIONLESS_START_MARGIN: f64 = 1.92;
 /// setup's, doubling, up to [`MAX_PEM_LEVEL`], each with the observer whose force was tuned
 /// at the setup's level; the coarsest level within 3 standard deviations (`1.5√(2Nm)`) of
 /// the likeliest is kept, its own observer force tuned; then one refinement at that level.
-/// Returns the result and the sub-steps used.
+/// Then the answer is checked against the law without friction ([`without_friction`]), and
+/// refined again from that law's answer when it is likelier (the start the bootstrap and the
+/// start-in-motion tests use is then that one). Returns the result and the sub-steps used.
 ///
 /// Why one observer for the comparison (since the twenty-sixth session; before, each level
 /// had its force tuned, 8 runs per level, 7 levels): the comparison is then between model
@@ -612,7 +620,7 @@ pub(super) fn refine_by_prediction_error<'a>(
     (start, scales): (&'a [f64], &'a [f64]),
     other_start: Option<(&'a [f64], &'a [f64])>,
 ) -> Result<PemStage, crate::simulate::SimulateError> {
-    use crate::estimate::prediction_error::{Wanted, refine};
+    use crate::estimate::prediction_error::{FrictionlessRefit, Wanted, refine};
     let zero_start: Vec<f64>;
     let (mut start, mut scales) = (start, scales);
     // The level is chosen on a prefix of long records (see [`LEVEL_CHOICE_SAMPLES`]); the
@@ -881,13 +889,33 @@ pub(super) fn refine_by_prediction_error<'a>(
     crate::par::phase("pem refine (and the law without friction)", t0);
     if let Some((from, nested_likelihood)) = from_nested {
         let t0 = std::time::Instant::now();
-        if nested_likelihood - ll_on(check_data, &r.refined) > FRICTIONLESS_START_MARGIN
+        // (`r.refined` has the noise's shift through the observer removed, the nested
+        // descent's point not: this screen leans towards the refit, which the decision on
+        // the refit's own answer, shifted as `r`'s, then weighs fairly.)
+        // On a long record the prefix first (its answer's run is a tenth of the whole's);
+        // the prefix favours the law fitted on it, so the nested answer must be likelier on
+        // the whole record too (one run of a linear law).
+        let on_check = ll_on(check_data, &r.refined);
+        let answer_likelihood = match check_prefix {
+            Some(_) if nested_likelihood - on_check > FRICTIONLESS_START_MARGIN => ll(&r.refined),
+            Some(_) => f64::NAN,
+            None => on_check,
+        };
+        let nested_is_likelier = match check_prefix {
+            Some(_) => {
+                answer_likelihood.is_finite()
+                    && ll(&from) - answer_likelihood > FRICTIONLESS_START_MARGIN
+            }
+            None => nested_likelihood - answer_likelihood > FRICTIONLESS_START_MARGIN,
+        };
+        if answer_likelihood.is_finite()
+            && nested_is_likelier
             && let Ok(rz) = descend(setup, &from, scales, wanted)
         {
-            let gain = ll(&rz.refined) - ll(&r.refined);
-            if gain > FRICTIONLESS_START_MARGIN {
-                r = rz;
-                r.report.frictionless_start_gain = Some(gain);
+            let gain = ll(&rz.refined) - answer_likelihood;
+            if gain.is_finite() && gain > FRICTIONLESS_START_MARGIN {
+                let replaced = std::mem::replace(&mut r, rz).refined;
+                r.report.frictionless_refit = Some(FrictionlessRefit { gain, replaced });
                 zero_start = from;
                 start = &zero_start;
             }
@@ -1417,7 +1445,7 @@ mod tests {
                 smooth_excitation_gain: None,
                 periodic_excitation: None,
                 bootstrap: None,
-                frictionless_start_gain: None,
+                frictionless_refit: None,
             },
         }
     }
@@ -1436,6 +1464,24 @@ mod tests {
         assert_eq!(nested.connections[0].initial, vec![0.0, 0.0, 0.0]);
         // No friction term: no nested model.
         assert!(without_friction(&nested).is_none());
+        // Two connections, friction in the middle and last: `[u, sign(v)]` and
+        // `[sign(u), v, u]` keep parameters 0, 3 and 4.
+        let mut two = setup.clone();
+        two.connections[0].basis = vec![Basis::U, Basis::SignV];
+        two.connections[0].initial = vec![1.0, 2.0];
+        two.connections[0].truth = None;
+        let mut second = two.connections[0].clone();
+        second.basis = vec![Basis::SignU, Basis::V, Basis::U];
+        second.initial = vec![3.0, 4.0, 5.0];
+        second.truth = Some(vec![6.0, 7.0, 8.0]);
+        two.connections.push(second);
+        let (nested, kept) = without_friction(&two).unwrap();
+        assert_eq!(kept, vec![0, 3, 4]);
+        assert_eq!(nested.param_basis(), vec![Basis::U, Basis::V, Basis::U]);
+        assert_eq!(nested.connections[0].initial, vec![1.0]);
+        assert_eq!(nested.connections[0].truth, None);
+        assert_eq!(nested.connections[1].initial, vec![4.0, 5.0]);
+        assert_eq!(nested.connections[1].truth, Some(vec![7.0, 8.0]));
         // A connection of friction alone would be left with nothing.
         let mut alone = setup.clone();
         alone.connections[0].basis = vec![Basis::SignU];
