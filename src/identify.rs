@@ -1901,7 +1901,7 @@ fn finish_with_output_error(
                             ),
                             None => match r.refined.get(j) {
                                 Some(x) if *x > 0.0 => format!(
-                                    "the descent ended at {x:.4e} and the shifts removed from the answer (the bootstrap's mean, the noise's through the observer) took it to 0; its standard error includes them"
+                                    "the descent ended at {x:.4e} (the noise's shift through the observer removed) and the bootstrap's mean shift removed from the answer took it to 0; its standard error includes it"
                                 ),
                                 _ => "its standard error is the start's".into(),
                             },

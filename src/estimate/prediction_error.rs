@@ -666,11 +666,13 @@ pub struct PemRefined {
     /// A record in motion: the initial state `(u; u̇; ü)` (offsets from rest) the last
     /// round's observer refitted, which the predicted response starts from.
     pub initial_state: Option<Vec<f64>>,
-    /// The refinement's own answer: `values` before the bootstrap's mean shift and the
-    /// noise's shift through the observer were removed (`identify::pem`). Whether a friction
-    /// ended on its bound is judged here: a level the descent left inside and a removed shift
-    /// then took to 0 was determined by the innovations, and its likelihood ratio
-    /// (`bound_likelihood_ratio`) was not computed.
+    /// The refinement's own answer: `values` before the bootstrap's mean shift was removed
+    /// (`identify::pem`); the noise's shift through the observer is already removed here
+    /// (as it has been since the field was added, though this note said otherwise until
+    /// the fifty-sixth session's review; `Wanted::Descent` has no noise shift). Whether a
+    /// friction ended on its bound is judged here: a level the descent left inside and the
+    /// bootstrap's shift then took to 0 was determined by the innovations, and its
+    /// likelihood ratio (`bound_likelihood_ratio`) was not computed.
     pub refined: Vec<f64>,
     /// Per parameter: for a friction level that ended on its bound 0 while the start had it
     /// positive, the likelihood-ratio statistic of the start's level against the bound — the
