@@ -896,17 +896,14 @@ pub(super) fn refine_by_prediction_error<'a>(
         // the prefix favours the law fitted on it, so the nested answer must be likelier on
         // the whole record too (one run of a linear law).
         let on_check = ll_on(check_data, &r.refined);
-        let answer_likelihood = match check_prefix {
-            Some(_) if nested_likelihood - on_check > FRICTIONLESS_START_MARGIN => ll(&r.refined),
-            Some(_) => f64::NAN,
-            None => on_check,
-        };
-        let nested_is_likelier = match check_prefix {
-            Some(_) => {
-                answer_likelihood.is_finite()
-                    && ll(&from) - answer_likelihood > FRICTIONLESS_START_MARGIN
+        let screened = nested_likelihood - on_check > FRICTIONLESS_START_MARGIN;
+        let (answer_likelihood, nested_is_likelier) = match check_prefix {
+            None => (on_check, screened),
+            Some(_) if screened => {
+                let whole = ll(&r.refined);
+                (whole, ll(&from) - whole > FRICTIONLESS_START_MARGIN)
             }
-            None => nested_likelihood - answer_likelihood > FRICTIONLESS_START_MARGIN,
+            Some(_) => (f64::NAN, false),
         };
         if answer_likelihood.is_finite()
             && nested_is_likelier
@@ -933,16 +930,7 @@ pub(super) fn refine_by_prediction_error<'a>(
     // sub-steps, ACCURACY.md).
     if opts.initial_state.is_none() {
         let mut tests = Vec::new();
-        let mut motion = start_motion(
-            setup,
-            model,
-            data,
-            sigma,
-            &r.values,
-            sub,
-            force_std.max(floor),
-            &mut tests,
-        )?;
+        let mut motion = start_motion(setup, model, data, sigma, &r.values, sub, fs, &mut tests)?;
         if motion.is_some() && likeliest_level != sub {
             motion = start_motion(
                 setup,
@@ -983,7 +971,7 @@ pub(super) fn refine_by_prediction_error<'a>(
             (start, scales),
             opts.initial_state.as_deref(),
             sub,
-            force_std.max(floor),
+            fs,
             opts.output_error_iterations,
             replicates,
         )
