@@ -632,7 +632,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
 /// Runs a live session. The first SIGINT/SIGTERM/SIGQUIT sets the stop flag (the stages
 /// drain and finalise, windows not yet identified are left to `replay`, so the session
 /// ends within a second or two); a second one exits at once with status 130, leaving the
-/// recording's `.partial` file with every chunk written so far. `signal-hook` counts the
+/// recording's `.partial` file with every chunk written so far (or the finished recording,
+/// if the shutdown had already finalised it). `signal-hook` counts the
 /// signals: iceoryx2's node signal handling reports one request again and again, so it
 /// cannot tell a second signal from the first.
 fn live(setup: &Setup, o: LiveOptions, json: bool) -> Result<ExitCode> {
