@@ -447,44 +447,44 @@ fn a_rate_friction_cut_in_motion_at_full_noise_is_corrected_by_the_bootstrap() {
     assert_every_parameter_within(&id, 2.0, "rate friction cut in motion, 100 % noise");
 }
 
-/// A record at rest that the start-at-rest test flags at the kept model level and clears at
-/// the likeliest (the shipped friction setup, 64-sub-step data, 100 % noise, 2,000 samples,
-/// seed 4). At this noise the level kept is the coarsest within 3 standard deviations of
-/// the likeliest (a few sub-steps coarser); its slight frequency error grows as a beat that a
-/// start state's free vibration also fits, so the test at that level passes its limit
-/// (measured 3.1× it; 13 of 16 such records passed at 0.5–3.4×). Tested again at the
-/// likeliest level it reads 0.3× the limit, and the record is identified as at rest: no
-/// second run, every parameter within 3 errors. Before the second test (2026-11-27) such
-/// records were identified again as in motion (one of 16 refused).
+/// The prediction error runs at the likeliest model sub-steps (the finest within Δχ² = 1 of
+/// it), not the coarsest within 3 standard deviations of ½χ², the rule until the
+/// fifty-seventh session. On 64-sub-step data at 100 % noise (the shipped friction setup,
+/// 2,000 samples) that rule kept 16 or 32 sub-steps, whose discretisation error biased the
+/// answer: seed 10328 at 16 sub-steps `u` +5.5, `sign(u)` −4.2 and `v` +4.3 errors off (over
+/// seeds 10301–10350 the spring came out high on 41 of 50 records). The coarser level's slight
+/// frequency error also left a beat that a start state's free vibration fits: seed 4 at rest
+/// was flagged in motion at the kept level (3.1× the limit) and cleared only by a second test
+/// at the likeliest. Now both are refined at 64 sub-steps, one start-at-rest test there reads
+/// about 0.3× the limit, and every parameter is within 2 errors (seed 10328: 1.5 at most).
 #[test]
-fn a_record_at_rest_flagged_at_the_kept_level_is_cleared_at_the_likeliest() {
+fn the_prediction_error_runs_at_the_likeliest_model_level() {
     let setup = shipped_friction_setup();
-    let id = run(&setup, 2000, 64, Noise::Additive(1.0), 4);
-    assert!(id.failure.is_none(), "{:?}", id.failure);
-    assert!(id.motion_in_record.is_none(), "{:?}", id.notes);
-    let pem = prediction_error_report(&id);
-    let tests = &pem.start_at_rest_tests;
-    assert_eq!(tests.len(), 2, "{tests:?}");
-    let (kept, likeliest) = (tests[0], tests[1]);
-    assert_eq!(kept.substeps, pem.substeps);
-    assert!(likeliest.substeps > kept.substeps, "{tests:?}");
-    assert!(
-        kept.statistic > 1.5 * kept.limit,
-        "flagged at the kept level: {tests:?}"
-    );
-    assert!(
-        likeliest.statistic < 0.6 * likeliest.limit,
-        "cleared at the likeliest: {tests:?}"
-    );
-    assert_every_parameter_within(&id, 3.0, "seed 4");
+    for seed in [10328, 4] {
+        let id = run(&setup, 2000, 64, Noise::Additive(1.0), seed);
+        assert!(id.failure.is_none(), "seed {seed}: {:?}", id.failure);
+        assert!(id.motion_in_record.is_none(), "seed {seed}: {:?}", id.notes);
+        let pem = prediction_error_report(&id);
+        assert_eq!(pem.substeps, 64, "seed {seed}: {:?}", id.notes);
+        let tests = &pem.start_at_rest_tests;
+        assert_eq!(tests.len(), 1, "seed {seed}: {tests:?}");
+        assert_eq!(tests[0].substeps, 64, "seed {seed}: {tests:?}");
+        assert!(
+            tests[0].statistic < 0.6 * tests[0].limit,
+            "seed {seed}, at rest: {tests:?}"
+        );
+        assert_every_parameter_within(&id, 2.0, &format!("seed {seed}"));
+    }
 }
 
 /// Long continuous records whose model level, kept on the first 2,000 samples, misfits the
 /// whole record (the shipped friction setup, 20,000 samples of 64-sub-step data, 10 % noise,
-/// seeds 1 and 2): 32 sub-steps were within 3 standard deviations of 64 on the prefix but
+/// seeds 1 and 2): under the rule before the fifty-seventh session (the coarsest level within
+/// 3 standard deviations of ½χ² of the likeliest) 32 sub-steps were kept on the prefix but
 /// left a normalised innovation cost of 7.9 and 1.7 on the whole record — seed 1's answer was
 /// refused and the free-run output error gave the friction −51 % ± 43 % after 9 minutes,
-/// seed 2's spring was 3.8 errors off. The level is now checked again on the whole record:
+/// seed 2's spring was 3.8 errors off. The likeliest level is now kept (and a finer one tied
+/// with it on the prefix is checked again on the whole record):
 /// both are refined at 64 sub-steps, their cost below 1 and every parameter within 3 errors.
 #[test]
 fn a_level_that_misfits_the_whole_record_gives_way_to_the_likeliest() {

@@ -607,6 +607,9 @@ pub struct PredictionErrorReport {
     /// When the excitation repeats itself (`identify::pem::excitation_periodicity`): the
     /// autocorrelation of its strongest repeat and that repeat's lag in samples.
     pub periodic_excitation: Option<(f64, usize)>,
+    /// When the excitation is an impact's (`identify::pem::excitation_impulse`): the share of
+    /// the samples on which it is quiet (below 1 % of its peak on every channel).
+    pub impulsive_excitation: Option<f64>,
     /// The parametric bootstrap, when asked for or automatic (`identify::pem::bootstrap`).
     pub bootstrap: Option<BootstrapReport>,
     /// When the refinement from the law without friction's answer was taken
@@ -1682,6 +1685,7 @@ pub fn refine(
         noise_shift_failure: None,
         smooth_excitation_gain: None,
         periodic_excitation: None,
+        impulsive_excitation: None,
         bootstrap: None,
         frictionless_refit: None,
         start_at_rest_tests: Vec::new(),

@@ -120,34 +120,46 @@ pub(super) fn raise_substeps(
     let mut refined_at: Vec<(usize, crate::estimate::output_error::Refined)> = Vec::new();
     // The step budget of a law not linear in the state: simulated sub-steps per run.
     let within_budget = |level: usize| data.len().saturating_mul(level) <= MAX_RAISED_STEPS;
+    let mut tried = Vec::new();
     while l <= cap && (linear || within_budget(l)) {
-        if l == opts.substeps {
-            l *= 2;
-            continue;
-        }
-        let best_here = if linear {
-            match refine_at(l) {
-                Ok(fresh) if fresh.report.accepted => {
-                    let c = fresh.report.cost_end;
-                    refined_at.push((l, fresh));
-                    c
-                }
-                _ => f64::INFINITY,
-            }
-        } else {
-            points
-                .iter()
-                .filter_map(|(p, _)| {
-                    data.free_run(setup, model, p, sigma, l)
-                        .ok()
-                        .map(|(_, c2)| c2 / nobs)
-                })
-                .fold(f64::INFINITY, f64::min)
-        };
-        if best_here.is_finite() {
-            levels.push((l, best_here));
+        if l != opts.substeps {
+            tried.push(l);
         }
         l *= 2;
+    }
+    // Every level (a linear law's refinements; another law's free runs at every minimum
+    // found) is independent of the others: run on parallel threads ([`crate::par`]), the
+    // results the same as one after the other.
+    if linear {
+        let fits = crate::par::map(&tried, |&level| refine_at(level));
+        for (&level, fit) in tried.iter().zip(fits) {
+            if let Ok(fresh) = fit
+                && fresh.report.accepted
+            {
+                levels.push((level, fresh.report.cost_end));
+                refined_at.push((level, fresh));
+            }
+        }
+    } else {
+        let runs: Vec<(usize, &[f64])> = tried
+            .iter()
+            .flat_map(|&level| points.iter().map(move |(p, _)| (level, p.as_slice())))
+            .collect();
+        let costs = crate::par::map(&runs, |&(level, p)| {
+            data.free_run(setup, model, p, sigma, level)
+                .ok()
+                .map(|(_, c2)| c2 / nobs)
+        });
+        for (&level, at_level) in tried.iter().zip(costs.chunks(points.len().max(1))) {
+            let best_here = at_level
+                .iter()
+                .flatten()
+                .copied()
+                .fold(f64::INFINITY, f64::min);
+            if best_here.is_finite() {
+                levels.push((level, best_here));
+            }
+        }
     }
     let lowest = levels.iter().map(|x| x.1).fold(current, f64::min);
     let chosen = if current <= lowest + significant {
