@@ -331,9 +331,9 @@ pub struct IdentifyOptions {
     pub max_tunings_refined: usize,
     /// Replicates of the parametric bootstrap of a prediction-error answer (`Some(0)`: none;
     /// `None`: automatic, [`pem::AUTO_BOOTSTRAP_REPLICATES`] when the excitation repeats
-    /// itself or was found smooth between samples, the sandwich depends on its secant
-    /// ([`pem::BOOTSTRAP_SECANT_DISAGREEMENT`]) or the law has a friction on the rate, and
-    /// none otherwise; see `identify::pem::bootstrap_occasion` and `identify::pem::bootstrap`)
+    /// itself, was found smooth between samples or is an impact's, the sandwich depends on its
+    /// secant ([`pem::BOOTSTRAP_SECANT_DISAGREEMENT`]), the law has a friction on the rate or
+    /// the refinement kept one model sub-step per sample, and none otherwise; see `identify::pem::bootstrap_occasion` and `identify::pem::bootstrap`)
     /// and of a free-run output-error answer (`None` runs none there unless a friction law's
     /// sensors have their `noise_std` given; see `identify::bootstrap`).
     pub bootstrap: Option<usize>,
