@@ -865,6 +865,39 @@ fn jacobian(
     })
 }
 
+/// The whitened innovations at `p` and the central-difference columns of `∂ŷ/∂p` (in the
+/// innovations' whitened units, secants of [`SECANT`] of `scales`) with the observer `pred`:
+/// what a Gauss–Newton step from `p` needs ([`gauss_newton_step`]). For the model sub-step
+/// choice (`identify::pem`), which compares every level at its own best values, not at a
+/// start fitted at one of them.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn innovation_jacobian(
+    setup: &Setup,
+    model: &Model,
+    p: &[f64],
+    scales: &[f64],
+    pred: &Predictor,
+    excitation: &[Vec<f64>],
+    response: &[Vec<f64>],
+    substeps: usize,
+) -> Result<(Vec<f64>, Vec<Vec<f64>>), SimulateError> {
+    let basis = setup.param_basis();
+    let j = jacobian(
+        setup, model, &basis, p, scales, pred, excitation, response, substeps, None, false,
+    )?;
+    Ok((j.r, j.cols))
+}
+
+/// The Gauss–Newton step `δ = (JᵀJ)⁻¹ Jᵀ r` that takes whitened innovations `r` towards
+/// their least squares along the columns `cols` of `∂ŷ/∂p` (`r(p + δ) ≈ r − J δ`); `None`
+/// when `JᵀJ` is singular or the step is not finite.
+pub(crate) fn gauss_newton_step(cols: &[Vec<f64>], r: &[f64]) -> Option<Vec<f64>> {
+    let (F, g) = normal_of(cols, r);
+    let inv = scaled_inverse(&F)?;
+    let step: Vec<f64> = (&inv * g).iter().copied().collect();
+    step.iter().all(|x| x.is_finite()).then_some(step)
+}
+
 /// The largest move from `from` to `p` in naive standard errors of `j` (∞ when its normal
 /// matrix is singular).
 fn moved_beyond(j: &Jac, p: &[f64], from: &[f64]) -> f64 {
@@ -2190,6 +2223,45 @@ mod tests {
     use rand::{RngExt, SeedableRng};
     use rand_chacha::ChaCha8Rng;
     use rand_distr::StandardNormal;
+
+    /// On innovations linear in the parameters, `r(p) = y − A p`, one Gauss–Newton step from
+    /// any point reaches their least squares (the law the level choice's first-order profile
+    /// rests on); a singular `AᵀA` gives no step.
+    #[test]
+    fn one_gauss_newton_step_reaches_the_least_squares_of_linear_innovations() {
+        let mut rng = ChaCha8Rng::seed_from_u64(58);
+        for _ in 0..20 {
+            let (n, p) = (40, 3);
+            let a: Vec<Vec<f64>> = (0..p)
+                .map(|_| (0..n).map(|_| rng.sample(StandardNormal)).collect())
+                .collect();
+            let y: Vec<f64> = (0..n).map(|_| rng.sample(StandardNormal)).collect();
+            let at = |q: &[f64]| -> Vec<f64> {
+                (0..n)
+                    .map(|i| y[i] - (0..p).map(|j| a[j][i] * q[j]).sum::<f64>())
+                    .collect()
+            };
+            let from: Vec<f64> = (0..p).map(|_| 10.0 * rng.random::<f64>()).collect();
+            let step = gauss_newton_step(&a, &at(&from)).expect("a step");
+            let reached: Vec<f64> = from.iter().zip(&step).map(|(x, d)| x + d).collect();
+            // The least squares from the origin: the same point whatever the start.
+            let ls = gauss_newton_step(&a, &at(&[0.0; 3])).expect("a step");
+            for (x, l) in reached.iter().zip(&ls) {
+                assert!(
+                    (x - l).abs() < 1e-9 * (1.0 + l.abs()),
+                    "{reached:?} against {ls:?}"
+                );
+            }
+            // At the least squares the residuals are orthogonal to every column.
+            let r = at(&reached);
+            for col in &a {
+                let g: f64 = col.iter().zip(&r).map(|(c, e)| c * e).sum();
+                assert!(g.abs() < 1e-8, "gradient {g}");
+            }
+        }
+        let dependent = vec![vec![1.0, 2.0, 3.0], vec![2.0, 4.0, 6.0]];
+        assert!(gauss_newton_step(&dependent, &[1.0, 0.0, 1.0]).is_none());
+    }
 
     /// A secant Jacobian of innovations `r(p) = y − A p (+ roughness)` made at `centre` the
     /// way [`jacobian`] makes it (central differences of half-width `h`, the mean of the
