@@ -602,9 +602,9 @@ fn an_impact_is_bootstrapped_when_its_excitation_is_not_found_smooth() {
 /// imported from CSV; `scripts/two_beam_campaign.py`). The residual-force passes run at the
 /// setup's one model sub-step and leave the stiffness +1.1 % high; the prediction error's
 /// level choice compared the levels at those values and kept one sub-step, and the answer
-/// was `u` 303,394 ± 126 N/m (26.9 errors off). Each level is now compared at its own
-/// values (one Gauss–Newton step): 64 sub-steps are kept and every parameter is within
-/// 2 errors of the truth the script used.
+/// was `u` 303,394 ± 126 N/m (26.9 errors off). Each level is now compared with its own
+/// observer force at its own values (Gauss–Newton steps from the start): 64 sub-steps are
+/// kept and every parameter is within 2 errors of the truth the script used (1.4 at most).
 #[test]
 fn a_continuous_record_is_refined_at_the_levels_own_best_values() {
     let rec = repo("recordings/two-beam-friction-rk4.mcap");
