@@ -39,7 +39,7 @@ FORCE_NODE, JOINT_NODE = 1, 6
 LEAD = 200
 SENSOR_NODES = [1, 3, 5, 7, 9, 11]
 CASES = {
-    # setup file, basis names as the report gives them, truth, friction level (N), stiffness (N/m)
+    # setup file, the truth's friction level (N) and stiffness (N/m)
     "friction": ("two-beam-friction.toml", 3000.0, 3.0e5),
     "spring": ("two-beam-spring.toml", 0.0, 3.0e5),
 }
@@ -155,6 +155,7 @@ def main():
         answered = 0
         with tempfile.TemporaryDirectory() as d:
             where = a.keep or d
+            os.makedirs(where, exist_ok=True)
             for k, seed in enumerate(seeds):
                 rng = np.random.default_rng([seed, int(round(level * 1e6))])
                 data = [c[:, k] + level * math.sqrt(np.mean(c[:, k] ** 2)) * rng.standard_normal(N) for c in cols]

@@ -1914,7 +1914,7 @@ fn finish_with_output_error(
                 }
                 if raised != opts.substeps {
                     result.notes.push(format!(
-                        "prediction-error refinement with {raised} model sub-steps per sample instead of {}: the likeliest level of the tuned innovation likelihood, each level with its own observer force at the likelier of the start values and its own (Gauss–Newton steps from them); every doubling up to 64 tried; the finest within Δχ² = 1 of the best kept, on a long record checked again on the whole of it)",
+                        "prediction-error refinement with {raised} model sub-steps per sample instead of {}: the likeliest level of the tuned innovation likelihood, each level with its own observer force at the likelier of the start values and its own, reached by Gauss–Newton steps from them (every doubling up to 64 tried; the finest within Δχ² = 1 of the best kept, on a long record checked again on the whole of it)",
                         opts.substeps
                     ));
                 }

@@ -890,9 +890,24 @@ pub(crate) fn innovation_jacobian(
 
 /// The Gauss–Newton step `δ = (JᵀJ)⁻¹ Jᵀ r` that takes whitened innovations `r` towards
 /// their least squares along the columns `cols` of `∂ŷ/∂p` (`r(p + δ) ≈ r − J δ`); `None`
-/// when `JᵀJ` is singular or the step is not finite.
+/// when `JᵀJ`, scaled to a unit diagonal, has a condition number above 1e12 (a column
+/// the others nearly repeat: the step along it is not determined), or the step is not finite.
 pub(crate) fn gauss_newton_step(cols: &[Vec<f64>], r: &[f64]) -> Option<Vec<f64>> {
     let (F, g) = normal_of(cols, r);
+    let d: Vec<f64> = (0..F.nrows()).map(|j| F[(j, j)]).collect();
+    if d.iter().any(|x| x.is_nan() || *x <= 0.0) {
+        return None;
+    }
+    let scaled = DMatrix::from_fn(F.nrows(), F.ncols(), |a, b| {
+        F[(a, b)] / (d[a] * d[b]).sqrt()
+    });
+    let eig = scaled.symmetric_eigenvalues();
+    let (lo, hi) = eig.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), &x| {
+        (lo.min(x), hi.max(x))
+    });
+    if lo.is_nan() || hi.is_nan() || lo <= 1e-12 * hi {
+        return None;
+    }
     let inv = scaled_inverse(&F)?;
     let step: Vec<f64> = (&inv * g).iter().copied().collect();
     step.iter().all(|x| x.is_finite()).then_some(step)
