@@ -879,27 +879,28 @@ pub(super) fn refine_by_prediction_error<'a>(
     // [`FORCE_TUNE_SAMPLES`] (see there); with it the likelihood of the start values there.
     let force_prefix = data.prefix(FORCE_TUNE_SAMPLES);
     let tune_data = force_prefix.as_ref().unwrap_or(data);
-    // A record no longer than [`LEVEL_CHOICE_SAMPLES`] is its own choice and tuning data:
-    // a chosen level whose force the choice did not tune is then tuned by one search
-    // ([`ForceSearch::Whole`]), not a coarse one and a near one over the same samples.
-    let one_search = prefix.is_none()
-        && force_prefix.is_none()
-        && tuned.iter().any(|t| t.0 == sub && t.1.is_none());
-    let force_std = if tuned.is_empty() || one_search {
+    // Every level's force was tuned at the start values during the choice (since the
+    // fifty-eighth session), so the kept level's is searched again near it (before, a short
+    // record's kept level whose force the choice had not tuned got one whole search,
+    // [`ForceSearch::Whole`]).
+    let force_std = if tuned.is_empty() {
         0.0
     } else {
         coarse_force_of(sub)
     };
     let near = |level: usize, coarse_force: f64| {
-        let search = if one_search && level == sub {
-            ForceSearch::Whole
-        } else if tuned.iter().any(|t| t.0 == level) {
-            ForceSearch::Near(coarse_force)
-        } else {
+        if !tuned.iter().any(|t| t.0 == level) {
             return (coarse_force, f64::NEG_INFINITY);
-        };
+        }
         tune_pem_force(
-            setup, model, tune_data, sigma, start, level, initial, search,
+            setup,
+            model,
+            tune_data,
+            sigma,
+            start,
+            level,
+            initial,
+            ForceSearch::Near(coarse_force),
         )
     };
     crate::par::phase("pem level choice", t0);
