@@ -1335,9 +1335,236 @@ struct SlipSampleMap {
     /// [`STUCK_WINDOWS_AFTER`]` × L` (the tests try them from the first).
     stuck_windows_after: usize,
     substeps: usize,
+    /// The whole-sample test segment by segment ([`SlipEnvelope`]); `None` with fewer than 16
+    /// sub-steps.
+    envelope: Option<SlipEnvelope>,
+    /// Each active friction's `δ` (or `δ̇`) at the sample's start, signed (work).
+    starts: Vec<f64>,
     /// Sub-steps stepped by the stuck windows (the tests ask that they were used).
     #[cfg(test)]
     held_substeps: usize,
+}
+
+/// Sub-steps per segment of [`SlipEnvelope`]: 8 segments of a 64-sub-step sample.
+const ENVELOPE_SEGMENT_SUBSTEPS: usize = 4;
+
+/// The slip map's whole-sample test in `2K` products a friction where `δ` keeps well clear
+/// of 0, instead of `L`: the sample's sub-steps cut into `K` segments; at each segment's end
+/// `δ` is computed (its check row), and inside it every `δ_j` differs from the straight line
+/// between the segment's two ends by at most `Σ_k m_k |input_k|`, `m` the largest absolute
+/// difference of the segment's check rows from the interpolated end rows, coefficient by
+/// coefficient (exact arithmetic: `δ_j = (1 − w) δ_a + w δ_b + e_j · input`, `|e_j · input| ≤
+/// m · |input|`). When both ends have the slip's sign by more than that bound (and three
+/// times the test's round-off scale, which covers the products' own rounding), every inner
+/// `δ_j` would clear the row test; any other segment's rows are tested one by one, in order.
+/// So the result is the row-by-row test's, the same `Err` (sub-steps cleared) or the same
+/// map applied: the same bits.
+///
+/// Why: on finely sub-stepped models (64 sub-steps, the level continuous data keep) the
+/// test's `L` products of the check rows were a third of a whole identification
+/// (`dense::dot` 31 % of `perf record` on an RK4 record, fifty-ninth session); a segment of
+/// 8 sub-steps is 1/8 of a sample, over which `δ` is nearly straight except near a reversal.
+/// The bound ignores the cancellations between coefficients, so it is loose (measured on a
+/// white random force: a spread of 0.1–1× `δ` a segment); it only has to clear most
+/// segments.
+#[derive(Debug)]
+struct SlipEnvelope {
+    /// Sub-step ends `b_1 < … < b_K = L` of the segments (the start, 0, before them).
+    nodes: Vec<usize>,
+    /// Per segment, the sub-step end that halves it when it is at least twice
+    /// [`ENVELOPE_HALF_SUBSTEPS`] long.
+    mids: Vec<Option<usize>>,
+    /// The bound's coefficients `m` per segment and friction (column `k r + i`), then per
+    /// half segment (column `(K + 2k + h) r + i`; zero where a segment has no halves), in
+    /// the input's layout.
+    bounds: DMatrix<f64>,
+    /// `|input|` (work).
+    abs_input: Vec<f64>,
+    /// Segments and half segments tested row by row and cleared by the bound (the tests ask
+    /// that it fires).
+    #[cfg(test)]
+    segments: [usize; 2],
+}
+
+/// Shortest half segment of [`SlipEnvelope`]: below it, testing a half's bound (its middle
+/// row and two bounds) costs about as much as its rows.
+const ENVELOPE_HALF_SUBSTEPS: usize = 4;
+
+impl SlipEnvelope {
+    /// From the check rows (`rows`: `r L` rows, a row per column, as `SlipSampleMap`) and the
+    /// frictions' selection of the start state (`select`, `r × 3n`); `None` with fewer than two
+    /// segments (`L < 16`: one segment is a whole sample, over which the bound is loose).
+    fn new(rows: &DMatrix<f64>, select: &DMatrix<f64>, substeps: usize) -> Option<Self> {
+        let L = substeps;
+        let r = select.nrows();
+        let width = rows.nrows();
+        if L < 2 * ENVELOPE_SEGMENT_SUBSTEPS || r == 0 {
+            return None;
+        }
+        let segments = L.div_ceil(ENVELOPE_SEGMENT_SUBSTEPS);
+        let nodes: Vec<usize> = (1..=segments)
+            .map(|k| ((k * L) as f64 / segments as f64).round() as usize)
+            .collect();
+        // The check row of friction `i` at sub-step end `j` (0: the start, its selection).
+        let row_at = |j: usize, i: usize| -> Vec<f64> {
+            if j == 0 {
+                let mut v = vec![0.0; width];
+                for (c, x) in v.iter_mut().zip(select.row(i).iter()) {
+                    *c = *x;
+                }
+                v
+            } else {
+                rows.column((j - 1) * r + i).iter().copied().collect()
+            }
+        };
+        // The bound of the rows strictly between sub-step ends `a` and `b`.
+        let bound_between = |a: usize, b: usize, i: usize, m: &mut [f64]| {
+            let (ca, cb) = (row_at(a, i), row_at(b, i));
+            for j in a + 1..b {
+                let w = (j - a) as f64 / (b - a) as f64;
+                for (((mc, x), ya), yb) in m
+                    .iter_mut()
+                    .zip(rows.column((j - 1) * r + i).iter())
+                    .zip(&ca)
+                    .zip(&cb)
+                {
+                    *mc = mc.max((x - (1.0 - w) * ya - w * yb).abs());
+                }
+            }
+        };
+        let mut bounds = DMatrix::zeros(width, 3 * segments * r);
+        let mut mids = Vec::with_capacity(segments);
+        let mut a = 0;
+        for (k, &b) in nodes.iter().enumerate() {
+            let mid = (b - a >= 2 * ENVELOPE_HALF_SUBSTEPS).then_some((a + b) / 2);
+            for i in 0..r {
+                bound_between(a, b, i, bounds.column_mut(k * r + i).as_mut_slice());
+                if let Some(mid) = mid {
+                    let left = (segments + 2 * k) * r + i;
+                    let right = (segments + 2 * k + 1) * r + i;
+                    bound_between(a, mid, i, bounds.column_mut(left).as_mut_slice());
+                    bound_between(mid, b, i, bounds.column_mut(right).as_mut_slice());
+                }
+            }
+            mids.push(mid);
+            a = b;
+        }
+        Some(Self {
+            nodes,
+            mids,
+            bounds,
+            abs_input: vec![0.0; width],
+            #[cfg(test)]
+            segments: [0; 2],
+        })
+    }
+
+    /// The whole-sample test of [`SlipSampleMap::try_sample`] segment by segment: `Err` with
+    /// the sub-steps cleared before the first check row that does not have its slip's sign
+    /// by more than its round-off scale, as the row-by-row test
+    /// ([`SlipSampleMap::check_every_substep`]) gives. A segment whose bound clears (both
+    /// ends above it by `3 bound`) is passed without its inner rows (they would clear: see
+    /// the type's doc); one whose bound does not, by its two halves' bounds where it has
+    /// them; any other span's rows are tested in order. `rows`, `row_sums`, `signs`, `input`
+    /// as the map's; `starts` each friction's start `δ` times its sign; `bound` the worst
+    /// row's round-off scale, `scale_of` a row's.
+    #[allow(clippy::too_many_arguments)]
+    fn check(
+        &mut self,
+        rows: &DMatrix<f64>,
+        row_sums: &[[f64; 4]],
+        input: &[f64],
+        starts: &[f64],
+        signs: &[f64],
+        bound: f64,
+        scale_of: &dyn Fn(&[f64; 4]) -> f64,
+    ) -> Result<(), usize> {
+        let r = starts.len();
+        let width = input.len();
+        let segments = self.nodes.len();
+        for (a, x) in self.abs_input.iter_mut().zip(input) {
+            *a = x.abs();
+        }
+        let (check, bounds, abs_input) = (rows.as_slice(), self.bounds.as_slice(), &self.abs_input);
+        let margin_of = |j: usize, i: usize| {
+            let row = (j - 1) * r + i;
+            signs[i] * crate::dense::dot(&check[row * width..(row + 1) * width], input)
+        };
+        // The row test of `check_every_substep`, written so that a NaN fails.
+        let clears = |j: usize, i: usize, margin: f64| {
+            margin > bound || margin > SLIP_TEST_MARGIN * scale_of(&row_sums[(j - 1) * r + i])
+        };
+        // Room for the products' rounding over the round-off scale (see the type's doc).
+        let floor = 3.0 * bound;
+        // Whether the span between two ends clears by its bound (column `col`), both ends'
+        // margins known; written so that a NaN fails.
+        let by_bound = |col: usize, before: f64, after: f64| {
+            let spread = crate::dense::dot(&bounds[col * width..(col + 1) * width], abs_input)
+                * (1.0 + 1e-9);
+            before.min(after) - spread > floor
+        };
+        // The first row from `a + 1` to `b` (its margin `after` known) that does not clear.
+        let rows_in_order = |a: usize, b: usize, i: usize, after: f64| {
+            (a + 1..=b).find(|&j| !clears(j, i, if j == b { after } else { margin_of(j, i) }))
+        };
+        #[cfg(test)]
+        let mut counts = [0usize; 2];
+        // The first sub-step (1-based) whose row does not clear, over the frictions.
+        let mut first = usize::MAX;
+        for (i, &start) in starts.iter().enumerate() {
+            let (mut a, mut before) = (0, start);
+            for (k, &b) in self.nodes.iter().enumerate() {
+                if a + 1 >= first {
+                    break;
+                }
+                let after = margin_of(b, i);
+                let cleared = by_bound(k * r + i, before, after);
+                #[cfg(test)]
+                {
+                    counts[usize::from(cleared)] += 1;
+                }
+                let failed = if cleared {
+                    None
+                } else if let Some(mid) = self.mids[k] {
+                    let at_mid = margin_of(mid, i);
+                    let left = (segments + 2 * k) * r + i;
+                    let halves = [
+                        (a, mid, at_mid, left, before),
+                        (mid, b, after, left + r, at_mid),
+                    ];
+                    halves.into_iter().find_map(|(from, to, end, col, start)| {
+                        let cleared = by_bound(col, start, end);
+                        #[cfg(test)]
+                        {
+                            counts[usize::from(cleared)] += 1;
+                        }
+                        if cleared {
+                            None
+                        } else {
+                            rows_in_order(from, to, i, end)
+                        }
+                    })
+                } else {
+                    rows_in_order(a, b, i, after)
+                };
+                if let Some(j) = failed {
+                    first = first.min(j);
+                    break;
+                }
+                (a, before) = (b, after);
+            }
+        }
+        #[cfg(test)]
+        {
+            self.segments[0] += counts[0];
+            self.segments[1] += counts[1];
+        }
+        if first == usize::MAX {
+            Ok(())
+        } else {
+            Err(first - 1)
+        }
+    }
 }
 
 /// Samples' worth of sub-steps (`× L`) that the force solve must have begun and ended with a
@@ -1871,6 +2098,7 @@ impl SlipSampleMap {
                 .view_mut(rows, (r, q))
                 .copy_from(&product(&select, &gb));
         }
+        let select_rows = select.clone();
         // What the windows are built from, at the first sample the test refuses.
         let window_parts = (r > 0 && L >= 2 && n <= MAX_WINDOW_DOFS).then(|| WindowParts {
             T: T.clone(),
@@ -1896,15 +2124,18 @@ impl SlipSampleMap {
         });
         let phi = matrix_power(T, L);
         use crate::dense::side_by_side;
+        let check_rows = crate::dense::transposed(&side_by_side(&[
+            &check_state,
+            &check_p0,
+            &check_p1,
+            &check_b,
+        ]));
         Ok(Some(Self {
             largest_row_sums,
             step: side_by_side(&[&phi, &g0, &g1, &gb]),
-            check_rows: crate::dense::transposed(&side_by_side(&[
-                &check_state,
-                &check_p0,
-                &check_p1,
-                &check_b,
-            ])),
+            envelope: SlipEnvelope::new(&check_rows, &select_rows, L),
+            starts: vec![0.0; r],
+            check_rows,
             row_sums,
             friction,
             select: select_taps,
@@ -1953,6 +2184,7 @@ impl SlipSampleMap {
                 return Err(0);
             }
             self.signs[i] = now.signum();
+            self.starts[i] = now.abs();
             b[ci] += self.signs[i] * level;
         }
         let b_max = b.iter().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -1965,6 +2197,37 @@ impl SlipSampleMap {
             |sums: &[f64; 4]| -> f64 { sums.iter().zip(&norms).map(|(a, b)| a * b).sum() };
         // The round-off scale of the worst row bounds every row's: most rows clear it.
         let bound = SLIP_TEST_MARGIN * scale_of(&self.largest_row_sums);
+        match self.envelope.as_mut() {
+            Some(envelope) => envelope.check(
+                &self.check_rows,
+                &self.row_sums,
+                self.input.as_slice(),
+                &self.starts,
+                &self.signs,
+                bound,
+                &scale_of,
+            )?,
+            None => self.check_every_substep(bound, &norms)?,
+        }
+        crate::dense::gemv(
+            &mut self.next,
+            &self.step,
+            &self.input,
+            crate::dense::Op::Set,
+        );
+        s.u.copy_from(&self.next.rows(0, n));
+        s.v.copy_from(&self.next.rows(n, n));
+        s.a.copy_from(&self.next.rows(2 * n, n));
+        Ok(())
+    }
+
+    /// The whole-sample test of [`Self::try_sample`], every check row in order: `Err` with
+    /// the sub-steps cleared before the first row that does not have its slip's sign by more
+    /// than its round-off scale (`bound`: the worst row's; `norms`: the input blocks' largest
+    /// values).
+    fn check_every_substep(&self, bound: f64, norms: &[f64; 4]) -> Result<(), usize> {
+        let scale_of =
+            |sums: &[f64; 4]| -> f64 { sums.iter().zip(norms).map(|(a, b)| a * b).sum() };
         let signs = self.signs.iter().cycle();
         let r = self.signs.len();
         let width = self.input.len();
@@ -1981,15 +2244,6 @@ impl SlipSampleMap {
                 return Err(row / r);
             }
         }
-        crate::dense::gemv(
-            &mut self.next,
-            &self.step,
-            &self.input,
-            crate::dense::Op::Set,
-        );
-        s.u.copy_from(&self.next.rows(0, n));
-        s.v.copy_from(&self.next.rows(n, n));
-        s.a.copy_from(&self.next.rows(2 * n, n));
         Ok(())
     }
 
@@ -2706,6 +2960,61 @@ mod tests {
                 assert!(
                     (60..290).contains(&stepped),
                     "{law}, {substeps} sub-steps: {stepped} of 299 samples by the slip map"
+                );
+            }
+        }
+    }
+
+    /// The segment-wise test ([`SlipEnvelope`]) gives the row-by-row test's result: every
+    /// sample steps to the same bits, or is refused after the same sub-steps, with it and
+    /// without it (the paper's joint with either `sign` term, 16 and 64 sub-steps, 300
+    /// samples from the sub-step path's states, and the same states scaled down 1e3-fold so
+    /// that the frictions reverse inside more samples); and its bound clears a good part of
+    /// the spans it tests where `δ` is smooth (`sign(u)`, 64 sub-steps: measured 1,425
+    /// cleared, 2,377 left to their rows, on this white force), so the test does not pass
+    /// only because the bound never fires.
+    #[test]
+    fn slip_envelope_steps_the_same_samples_to_the_same_bits() {
+        for (law, setup, model, params, exc) in sign_law_cases() {
+            for substeps in [16, 64] {
+                let h = setup.dt_s / substeps as f64;
+                let mut slow = TruthSystem::with_params(&setup, &model, h, &params).unwrap();
+                let map = || {
+                    SlipSampleMap::new(&setup, &model, &params, setup.dt_s, substeps)
+                        .unwrap()
+                        .unwrap()
+                };
+                let (mut with, mut without) = (map(), map());
+                assert!(with.envelope.is_some(), "{law}, {substeps} sub-steps");
+                without.envelope = None;
+                let mut a = rest_state(&model, &slow, &exc[0]).unwrap();
+                let mut pt = DVector::zeros(model.Lp.ncols());
+                for i in 1..exc.len() {
+                    for scale in [1.0, 1e-3] {
+                        let mut start = a.clone();
+                        for w in [&mut start.u, &mut start.v, &mut start.a] {
+                            *w *= scale;
+                        }
+                        let (mut x, mut y) = (start.clone(), start);
+                        let rx = with.try_sample(&mut x, &exc[i - 1], &exc[i]);
+                        let ry = without.try_sample(&mut y, &exc[i - 1], &exc[i]);
+                        assert_eq!(rx, ry, "{law}, {substeps} sub-steps, sample {i}");
+                        let bits =
+                            |w: &DVector<f64>| w.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                        for (p, q) in [(&x.u, &y.u), (&x.v, &y.v), (&x.a, &y.a)] {
+                            assert_eq!(bits(p), bits(q), "{law}, {substeps} sub-steps, sample {i}");
+                        }
+                    }
+                    slow.sample_substeps(&mut a, &exc[i - 1], &exc[i], substeps, &mut pt)
+                        .unwrap();
+                }
+                // The bound must fire where `δ` is smooth: `sign(u)` at 64 sub-steps (`δ̇` of
+                // `sign(v)` carries the white force's every frequency, and 16 sub-steps make
+                // segments of a half sample: there it rarely clears, and costs little).
+                let [by_rows, by_bound] = with.envelope.as_ref().unwrap().segments;
+                assert!(
+                    law != "sign(u)" || substeps < 64 || by_bound * 3 >= by_rows,
+                    "{law}, {substeps} sub-steps: {by_bound} spans cleared by the bound, {by_rows} by rows"
                 );
             }
         }
