@@ -140,10 +140,34 @@ fn pem_innovations(
     initial: Option<&[f64]>,
     force_std: f64,
 ) -> Option<(Vec<f64>, f64)> {
+    pem_innovations_as(
+        setup, model, data, sigma, start, substeps, initial, force_std, false,
+    )
+}
+
+/// [`pem_innovations`], the innovations concentrated over the start state when
+/// `concentrated` and the record is in motion (`initial`): those a Gauss–Newton step on the
+/// level choice's Jacobian (its columns concentrated too) must see. The log-likelihood is
+/// the same either way (the start state's refit removed).
+#[allow(clippy::too_many_arguments)]
+fn pem_innovations_as(
+    setup: &Setup,
+    model: &Model,
+    data: &TestData,
+    sigma: &[f64],
+    start: &[f64],
+    substeps: usize,
+    initial: Option<&[f64]>,
+    force_std: f64,
+    concentrated: bool,
+) -> Option<(Vec<f64>, f64)> {
     use crate::estimate::prediction_error::{innovations, predictor};
     let n = data.len() as f64;
     let mut pred = predictor(setup, model, start, sigma, substeps, force_std, data.len()).ok()?;
     pred.initial = initial.map(<[f64]>::to_vec);
+    if concentrated && pred.initial.is_some() {
+        pred.concentrate(data.len())?;
+    }
     let (r, c) = innovations(
         setup,
         model,
@@ -156,7 +180,7 @@ fn pem_innovations(
     .ok()?;
     // A record in motion: the likelihood concentrated over the start state (the cost its
     // least-squares refit removes).
-    let c = if pred.initial.is_some() {
+    let c = if pred.initial.is_some() && !pred.is_concentrated() {
         // Not concentrated (the fit failed): not comparable with the others.
         c - pred.refit_initial_state(&r)?
     } else {
@@ -202,8 +226,8 @@ fn pem_profile_log_likelihood(
     cols: Option<&[Vec<f64>]>,
 ) -> (f64, Option<Vec<f64>>) {
     use crate::estimate::prediction_error::{feasible, gauss_newton_step};
-    let Some((r, ll)) = pem_innovations(
-        setup, model, data, sigma, start, substeps, initial, force_std,
+    let Some((r, ll)) = pem_innovations_as(
+        setup, model, data, sigma, start, substeps, initial, force_std, true,
     ) else {
         return (f64::NEG_INFINITY, None);
     };
@@ -215,8 +239,8 @@ fn pem_profile_log_likelihood(
         };
         let stepped: Vec<f64> = here.iter().zip(&step).map(|(a, b)| a + b).collect();
         let stepped = feasible(&setup.param_basis(), &stepped);
-        let Some((r_stepped, at_step)) = pem_innovations(
-            setup, model, data, sigma, &stepped, substeps, initial, force_std,
+        let Some((r_stepped, at_step)) = pem_innovations_as(
+            setup, model, data, sigma, &stepped, substeps, initial, force_std, true,
         ) else {
             break;
         };
@@ -773,6 +797,11 @@ pub(super) fn refine_by_prediction_error<'a>(
                 .ok()
                 .and_then(|mut pred| {
                     pred.initial = initial.map(<[f64]>::to_vec);
+                    // A record in motion: the columns concentrated over the start state,
+                    // as the steps' innovations are (see `pem_profile_log_likelihood`).
+                    if pred.initial.is_some() {
+                        pred.concentrate(choice.len())?;
+                    }
                     innovation_jacobian(
                         setup,
                         model,
@@ -853,6 +882,16 @@ pub(super) fn refine_by_prediction_error<'a>(
     })
     .collect();
     tuned.sort_by_key(|t| t.0);
+    // `JOINTID_LEVEL_DEBUG`: every level's force at the start values and likelihood.
+    if std::env::var_os("JOINTID_LEVEL_DEBUG").is_some() {
+        for (l, f, ll) in &tuned {
+            let stepped = stepped_values.iter().any(|t| t.0 == *l);
+            eprintln!(
+                "level {l:2}: force {:.3e}, log-likelihood {ll:.2} (at its own values: {stepped})",
+                f.unwrap_or(f64::NAN)
+            );
+        }
+    }
     let best = tuned.iter().map(|t| t.2).fold(f64::NEG_INFINITY, f64::max);
     // The coarse force of a level (tuned when first asked for if the choice did not).
     let mut coarse_forces: Vec<(usize, f64)> =
