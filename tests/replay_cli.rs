@@ -631,7 +631,7 @@ fn a_continuous_record_is_refined_at_the_levels_own_best_values() {
 /// A record cut from a test in motion that nobody here simulated
 /// (`recordings/two-beam-spring-rk4-motion.mcap`: RK4 at 1,000 steps a sample, the record
 /// cut 20 ms into the test, 10 % noise, imported from CSV; `scripts/two_beam_campaign.py
-/// spring 104 1 0.1 --motion`). Its start state is estimated. The prediction error's level
+/// spring 102 3 0.1 --motion`, seed 104). Its start state is estimated. The prediction error's level
 /// choice stepped each level from the passes' values by Gauss–Newton on innovations (and a
 /// Jacobian) that still carried the start state's error, and judged the steps by the
 /// likelihood with that error refitted: the steps spent the parameters on the start state's
