@@ -1335,7 +1335,7 @@ struct SlipSampleMap {
     /// [`STUCK_WINDOWS_AFTER`]` × L` (the tests try them from the first).
     stuck_windows_after: usize,
     substeps: usize,
-    /// The whole-sample test segment by segment ([`SlipEnvelope`]); `None` with fewer than 16
+    /// The whole-sample test segment by segment ([`SlipEnvelope`]); `None` with fewer than 8
     /// sub-steps.
     envelope: Option<SlipEnvelope>,
     /// Each active friction's `δ` (or `δ̇`) at the sample's start, signed (work).
@@ -1345,7 +1345,10 @@ struct SlipSampleMap {
     held_substeps: usize,
 }
 
-/// Sub-steps per segment of [`SlipEnvelope`]: 8 segments of a 64-sub-step sample.
+/// Sub-steps per segment of [`SlipEnvelope`]: 16 segments of a 64-sub-step sample.
+/// Measured (fifty-ninth session, BENCHMARKS.md): segments of 8 were slower than the row
+/// test where the bound rarely clears (a 100 %-noise record 1.25 s against 1.19), segments of
+/// 4 nowhere slower, and 4 with the failed ones tried again as halves of 2 no faster.
 const ENVELOPE_SEGMENT_SUBSTEPS: usize = 4;
 
 /// The slip map's whole-sample test in `2K` products a friction where `δ` keeps well clear
@@ -1354,8 +1357,8 @@ const ENVELOPE_SEGMENT_SUBSTEPS: usize = 4;
 /// between the segment's two ends by at most `Σ_k m_k |input_k|`, `m` the largest absolute
 /// difference of the segment's check rows from the interpolated end rows, coefficient by
 /// coefficient (exact arithmetic: `δ_j = (1 − w) δ_a + w δ_b + e_j · input`, `|e_j · input| ≤
-/// m · |input|`). When both ends have the slip's sign by more than that bound (and three
-/// times the test's round-off scale, which covers the products' own rounding), every inner
+/// m · |input|`). When both ends have the slip's sign by more than that bound plus three
+/// times the test's round-off scale (which covers the products' own rounding), every inner
 /// `δ_j` would clear the row test; any other segment's rows are tested one by one, in order.
 /// So the result is the row-by-row test's, the same `Err` (sub-steps cleared) or the same
 /// map applied: the same bits.
@@ -1363,42 +1366,38 @@ const ENVELOPE_SEGMENT_SUBSTEPS: usize = 4;
 /// Why: on finely sub-stepped models (64 sub-steps, the level continuous data keep) the
 /// test's `L` products of the check rows were a third of a whole identification
 /// (`dense::dot` 31 % of `perf record` on an RK4 record, fifty-ninth session); a segment of
-/// 8 sub-steps is 1/8 of a sample, over which `δ` is nearly straight except near a reversal.
-/// The bound ignores the cancellations between coefficients, so it is loose (measured on a
-/// white random force: a spread of 0.1–1× `δ` a segment); it only has to clear most
-/// segments.
+/// 4 sub-steps is 1/16 of a sample, over which `δ` is nearly straight except near a
+/// reversal. The bound ignores the cancellations between coefficients, so it is loose
+/// (measured on a white random force: a spread of 0.1–1× `δ` a segment); it only has to
+/// clear most segments.
 #[derive(Debug)]
 struct SlipEnvelope {
     /// Sub-step ends `b_1 < … < b_K = L` of the segments (the start, 0, before them).
     nodes: Vec<usize>,
-    /// Per segment, the sub-step end that halves it when it is at least twice
-    /// [`ENVELOPE_HALF_SUBSTEPS`] long.
-    mids: Vec<Option<usize>>,
-    /// The bound's coefficients `m` per segment and friction (column `k r + i`), then per
-    /// half segment (column `(K + 2k + h) r + i`; zero where a segment has no halves), in
-    /// the input's layout.
+    /// The bound's coefficients `m` per segment and friction (column `k r + i`), in the
+    /// input's layout.
     bounds: DMatrix<f64>,
     /// `|input|` (work).
     abs_input: Vec<f64>,
-    /// Segments and half segments tested row by row and cleared by the bound (the tests ask
-    /// that it fires).
+    /// Segments tested row by row, cleared by the bound, and refused inside although both
+    /// ends cleared (the tests ask that the bound fires and that it is needed).
     #[cfg(test)]
-    segments: [usize; 2],
+    segments: [usize; 3],
 }
-
-/// Shortest half segment of [`SlipEnvelope`]: below it, testing a half's bound (its middle
-/// row and two bounds) costs about as much as its rows.
-const ENVELOPE_HALF_SUBSTEPS: usize = 4;
 
 impl SlipEnvelope {
     /// From the check rows (`rows`: `r L` rows, a row per column, as `SlipSampleMap`) and the
     /// frictions' selection of the start state (`select`, `r × 3n`); `None` with fewer than two
-    /// segments (`L < 16`: one segment is a whole sample, over which the bound is loose).
+    /// segments (`L < 8`: one segment is a whole sample, over which the bound is loose) or a
+    /// row that is not finite (a bound made of it could not be trusted).
     fn new(rows: &DMatrix<f64>, select: &DMatrix<f64>, substeps: usize) -> Option<Self> {
         let L = substeps;
         let r = select.nrows();
         let width = rows.nrows();
-        if L < 2 * ENVELOPE_SEGMENT_SUBSTEPS || r == 0 {
+        if L < 2 * ENVELOPE_SEGMENT_SUBSTEPS
+            || r == 0
+            || !rows.iter().chain(select.iter()).all(|x| x.is_finite())
+        {
             return None;
         }
         let segments = L.div_ceil(ENVELOPE_SEGMENT_SUBSTEPS);
@@ -1417,45 +1416,32 @@ impl SlipEnvelope {
                 rows.column((j - 1) * r + i).iter().copied().collect()
             }
         };
-        // The bound of the rows strictly between sub-step ends `a` and `b`.
-        let bound_between = |a: usize, b: usize, i: usize, m: &mut [f64]| {
-            let (ca, cb) = (row_at(a, i), row_at(b, i));
-            for j in a + 1..b {
-                let w = (j - a) as f64 / (b - a) as f64;
-                for (((mc, x), ya), yb) in m
-                    .iter_mut()
-                    .zip(rows.column((j - 1) * r + i).iter())
-                    .zip(&ca)
-                    .zip(&cb)
-                {
-                    *mc = mc.max((x - (1.0 - w) * ya - w * yb).abs());
-                }
-            }
-        };
-        let mut bounds = DMatrix::zeros(width, 3 * segments * r);
-        let mut mids = Vec::with_capacity(segments);
+        let mut bounds = DMatrix::<f64>::zeros(width, segments * r);
         let mut a = 0;
         for (k, &b) in nodes.iter().enumerate() {
-            let mid = (b - a >= 2 * ENVELOPE_HALF_SUBSTEPS).then_some((a + b) / 2);
             for i in 0..r {
-                bound_between(a, b, i, bounds.column_mut(k * r + i).as_mut_slice());
-                if let Some(mid) = mid {
-                    let left = (segments + 2 * k) * r + i;
-                    let right = (segments + 2 * k + 1) * r + i;
-                    bound_between(a, mid, i, bounds.column_mut(left).as_mut_slice());
-                    bound_between(mid, b, i, bounds.column_mut(right).as_mut_slice());
+                let (ca, cb) = (row_at(a, i), row_at(b, i));
+                let mut m = bounds.column_mut(k * r + i);
+                for j in a + 1..b {
+                    let w = (j - a) as f64 / (b - a) as f64;
+                    for (((mc, x), ya), yb) in m
+                        .iter_mut()
+                        .zip(rows.column((j - 1) * r + i).iter())
+                        .zip(&ca)
+                        .zip(&cb)
+                    {
+                        *mc = mc.max((x - (1.0 - w) * ya - w * yb).abs());
+                    }
                 }
             }
-            mids.push(mid);
             a = b;
         }
         Some(Self {
             nodes,
-            mids,
             bounds,
             abs_input: vec![0.0; width],
             #[cfg(test)]
-            segments: [0; 2],
+            segments: [0; 3],
         })
     }
 
@@ -1464,10 +1450,9 @@ impl SlipEnvelope {
     /// by more than its round-off scale, as the row-by-row test
     /// ([`SlipSampleMap::check_every_substep`]) gives. A segment whose bound clears (both
     /// ends above it by `3 bound`) is passed without its inner rows (they would clear: see
-    /// the type's doc); one whose bound does not, by its two halves' bounds where it has
-    /// them; any other span's rows are tested in order. `rows`, `row_sums`, `signs`, `input`
-    /// as the map's; `starts` each friction's start `δ` times its sign; `bound` the worst
-    /// row's round-off scale, `scale_of` a row's.
+    /// the type's doc); any other segment's rows are tested in order. `rows`, `row_sums`,
+    /// `signs`, `input` as the map's; `starts` each friction's start `δ` times its sign;
+    /// `bound` the worst row's round-off scale, `scale_of` a row's.
     #[allow(clippy::too_many_arguments)]
     fn check(
         &mut self,
@@ -1481,11 +1466,10 @@ impl SlipEnvelope {
     ) -> Result<(), usize> {
         let r = starts.len();
         let width = input.len();
-        let segments = self.nodes.len();
         for (a, x) in self.abs_input.iter_mut().zip(input) {
             *a = x.abs();
         }
-        let (check, bounds, abs_input) = (rows.as_slice(), self.bounds.as_slice(), &self.abs_input);
+        let (check, bounds) = (rows.as_slice(), self.bounds.as_slice());
         let margin_of = |j: usize, i: usize| {
             let row = (j - 1) * r + i;
             signs[i] * crate::dense::dot(&check[row * width..(row + 1) * width], input)
@@ -1496,19 +1480,8 @@ impl SlipEnvelope {
         };
         // Room for the products' rounding over the round-off scale (see the type's doc).
         let floor = 3.0 * bound;
-        // Whether the span between two ends clears by its bound (column `col`), both ends'
-        // margins known; written so that a NaN fails.
-        let by_bound = |col: usize, before: f64, after: f64| {
-            let spread = crate::dense::dot(&bounds[col * width..(col + 1) * width], abs_input)
-                * (1.0 + 1e-9);
-            before.min(after) - spread > floor
-        };
-        // The first row from `a + 1` to `b` (its margin `after` known) that does not clear.
-        let rows_in_order = |a: usize, b: usize, i: usize, after: f64| {
-            (a + 1..=b).find(|&j| !clears(j, i, if j == b { after } else { margin_of(j, i) }))
-        };
         #[cfg(test)]
-        let mut counts = [0usize; 2];
+        let mut counts = [0usize; 3];
         // The first sub-step (1-based) whose row does not clear, over the frictions.
         let mut first = usize::MAX;
         for (i, &start) in starts.iter().enumerate() {
@@ -1518,36 +1491,25 @@ impl SlipEnvelope {
                     break;
                 }
                 let after = margin_of(b, i);
-                let cleared = by_bound(k * r + i, before, after);
+                let col = k * r + i;
+                let spread =
+                    crate::dense::dot(&bounds[col * width..(col + 1) * width], &self.abs_input)
+                        * (1.0 + 1e-9);
+                // Each end on its own (`f64::min` would drop a NaN); a NaN fails.
+                let cleared = before - spread > floor && after - spread > floor;
                 #[cfg(test)]
                 {
                     counts[usize::from(cleared)] += 1;
                 }
-                let failed = if cleared {
-                    None
-                } else if let Some(mid) = self.mids[k] {
-                    let at_mid = margin_of(mid, i);
-                    let left = (segments + 2 * k) * r + i;
-                    let halves = [
-                        (a, mid, at_mid, left, before),
-                        (mid, b, after, left + r, at_mid),
-                    ];
-                    halves.into_iter().find_map(|(from, to, end, col, start)| {
-                        let cleared = by_bound(col, start, end);
-                        #[cfg(test)]
-                        {
-                            counts[usize::from(cleared)] += 1;
-                        }
-                        if cleared {
-                            None
-                        } else {
-                            rows_in_order(from, to, i, end)
-                        }
-                    })
-                } else {
-                    rows_in_order(a, b, i, after)
-                };
-                if let Some(j) = failed {
+                if !cleared
+                    && let Some(j) = (a + 1..=b)
+                        .find(|&j| !clears(j, i, if j == b { after } else { margin_of(j, i) }))
+                {
+                    // A reversal inside a segment whose ends both clear: what the bound is for.
+                    #[cfg(test)]
+                    {
+                        counts[2] += usize::from(j < b && before > floor && after > floor);
+                    }
                     first = first.min(j);
                     break;
                 }
@@ -1555,9 +1517,8 @@ impl SlipEnvelope {
             }
         }
         #[cfg(test)]
-        {
-            self.segments[0] += counts[0];
-            self.segments[1] += counts[1];
+        for (total, count) in self.segments.iter_mut().zip(counts) {
+            *total += count;
         }
         if first == usize::MAX {
             Ok(())
@@ -2966,17 +2927,29 @@ mod tests {
     }
 
     /// The segment-wise test ([`SlipEnvelope`]) gives the row-by-row test's result: every
-    /// sample steps to the same bits, or is refused after the same sub-steps, with it and
-    /// without it (the paper's joint with either `sign` term, 16 and 64 sub-steps, 300
+    /// sample steps to the same state, or is refused after the same sub-steps, with it and
+    /// without it (the paper's joint with either `sign` term, and two frictions on two
+    /// connections; 8, 10, 13, 16, 20 and 64 sub-steps, so segments of unequal lengths; 300
     /// samples from the sub-step path's states, and the same states scaled down 1e3-fold so
-    /// that the frictions reverse inside more samples); and its bound clears a good part of
-    /// the spans it tests where `δ` is smooth (`sign(u)`, 64 sub-steps: measured 1,425
-    /// cleared, 2,377 left to their rows, on this white force), so the test does not pass
-    /// only because the bound never fires.
+    /// that the frictions reverse inside more samples). It must be tested where it matters:
+    /// its bound clears a good part of the segments where `δ` is smooth (`sign(u)`, 64
+    /// sub-steps: measured 1,425 of 3,802 on this white force), and over the cases some
+    /// segments whose two ends both clear have a reversal inside (measured 9), which only the
+    /// bound keeps from passing: a bound of 0 would make those samples differ.
     #[test]
     fn slip_envelope_steps_the_same_samples_to_the_same_bits() {
-        for (law, setup, model, params, exc) in sign_law_cases() {
-            for substeps in [16, 64] {
+        let two = {
+            let (setup, model, params) = friction_setup_and_second_connection(
+                "friction9",
+                "[\"sign(v)\", \"u\"]",
+                "[400.0, 2.0e4]",
+            );
+            let exc = random_excitation(model.Lp.ncols(), 300, 1.5e3, 5);
+            ("sign(u) and sign(v)", setup, model, params, exc)
+        };
+        let mut dips = 0;
+        for (law, setup, model, params, exc) in sign_law_cases().chain([two]) {
+            for substeps in [8, 10, 13, 16, 20, 64] {
                 let h = setup.dt_s / substeps as f64;
                 let mut slow = TruthSystem::with_params(&setup, &model, h, &params).unwrap();
                 let map = || {
@@ -3008,16 +2981,15 @@ mod tests {
                     slow.sample_substeps(&mut a, &exc[i - 1], &exc[i], substeps, &mut pt)
                         .unwrap();
                 }
-                // The bound must fire where `δ` is smooth: `sign(u)` at 64 sub-steps (`δ̇` of
-                // `sign(v)` carries the white force's every frequency, and 16 sub-steps make
-                // segments of a half sample: there it rarely clears, and costs little).
-                let [by_rows, by_bound] = with.envelope.as_ref().unwrap().segments;
+                let [by_rows, by_bound, inside] = with.envelope.as_ref().unwrap().segments;
+                dips += inside;
                 assert!(
                     law != "sign(u)" || substeps < 64 || by_bound * 3 >= by_rows,
-                    "{law}, {substeps} sub-steps: {by_bound} spans cleared by the bound, {by_rows} by rows"
+                    "{law}, {substeps} sub-steps: {by_bound} segments cleared by the bound, {by_rows} by rows"
                 );
             }
         }
+        assert!(dips > 0, "no reversal inside a segment whose ends clear");
     }
 
     /// The samples the whole-sample slip test refuses (a friction reverses or sticks inside
