@@ -181,7 +181,8 @@ fn pem_innovations_as(
     // A record in motion: the likelihood concentrated over the start state (the cost its
     // least-squares refit removes).
     let c = if pred.initial.is_some() && !pred.is_concentrated() {
-        // Not concentrated (the fit failed): not comparable with the others.
+        // Raw innovations: the start state's refit taken off here (`None` when it fails: a
+        // likelihood not concentrated is not comparable with the others).
         c - pred.refit_initial_state(&r)?
     } else {
         c
