@@ -1348,7 +1348,7 @@ struct SlipSampleMap {
 /// Sub-steps per segment of [`SlipEnvelope`]: 16 segments of a 64-sub-step sample.
 /// Measured (fifty-ninth session, BENCHMARKS.md): segments of 8 were slower than the row
 /// test where the bound rarely clears (a 100 %-noise record 1.25 s against 1.19), segments of
-/// 4 nowhere slower, and 4 with the failed ones tried again as halves of 2 no faster.
+/// 4 nowhere slower.
 const ENVELOPE_SEGMENT_SUBSTEPS: usize = 4;
 
 /// The slip map's whole-sample test in `2K` products a friction where `δ` keeps well clear
@@ -2059,7 +2059,13 @@ impl SlipSampleMap {
                 .view_mut(rows, (r, q))
                 .copy_from(&product(&select, &gb));
         }
-        let select_rows = select.clone();
+        let check_rows = crate::dense::transposed(&crate::dense::side_by_side(&[
+            &check_state,
+            &check_p0,
+            &check_p1,
+            &check_b,
+        ]));
+        let envelope = SlipEnvelope::new(&check_rows, &select, L);
         // What the windows are built from, at the first sample the test refuses.
         let window_parts = (r > 0 && L >= 2 && n <= MAX_WINDOW_DOFS).then(|| WindowParts {
             T: T.clone(),
@@ -2085,16 +2091,10 @@ impl SlipSampleMap {
         });
         let phi = matrix_power(T, L);
         use crate::dense::side_by_side;
-        let check_rows = crate::dense::transposed(&side_by_side(&[
-            &check_state,
-            &check_p0,
-            &check_p1,
-            &check_b,
-        ]));
         Ok(Some(Self {
             largest_row_sums,
             step: side_by_side(&[&phi, &g0, &g1, &gb]),
-            envelope: SlipEnvelope::new(&check_rows, &select_rows, L),
+            envelope,
             starts: vec![0.0; r],
             check_rows,
             row_sums,
